@@ -1,0 +1,208 @@
+"""Liquid time-constant (LTC) cell, ncps-torch semantics (``ncps.torch.LTCCell``, ``FullyConnected`` wiring).
+
+Per input step the conductance-based ODE ``cm dv/dt = gleak (vleak - v) + sum_j a_j (erev_j - v)`` is
+integrated with ``ode_unfolds`` semi-implicit ("hybrid") Euler sub-steps of size ``s = dt / ode_unfolds``,
+where the synaptic activations are ``a = pos(w) * sigmoid(sigma * (v_src - mu))`` (recurrent) and the same
+form on the mapped input (sensory). ncps writes one sub-step as
+``v <- (cm/s * v + N) / (cm/s + D + eps)``; this module evaluates the algebraically equal form
+``v <- v + s * (N - v * D') / (cm + s * D')`` with ``D' = D + eps``, in which ``dt`` multiplies instead of
+divides: ``dt = 0`` is well defined and leaves the state exactly unchanged.
+
+``pos`` is softplus when ``implicit_param_constraints`` (the default of the ncps ``LTC`` wrapper), identity
+otherwise (then keep ``w, sensory_w, cm, gleak >= 0`` yourself, e.g. with :func:`clip_ltc_parameters`
+after each optimiser step, as ncps's ``apply_weight_constraints`` does).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lnnmpc.nets.common import (
+    as_time_delta,
+    check_choice,
+    check_int_at_least,
+    check_non_negative,
+    constant_array,
+    uniform_range,
+)
+
+LTC_MAPPINGS = ("affine", "linear", "none")
+
+# ncps LTCCell._init_ranges
+LTC_INIT_RANGES = {
+    "gleak": (0.001, 1.0),
+    "vleak": (-0.2, 0.2),
+    "cm": (0.4, 0.6),
+    "w": (0.001, 1.0),
+    "sigma": (3.0, 8.0),
+    "mu": (0.3, 0.8),
+    "sensory_w": (0.001, 1.0),
+    "sensory_sigma": (3.0, 8.0),
+    "sensory_mu": (0.3, 0.8),
+}
+
+CONSTRAINED_PARAMETERS = ("gleak", "cm", "w", "sensory_w")
+
+
+@functools.lru_cache(maxsize=32)
+def fully_connected_polarities(hidden_size: int, input_size: int, seed: int = 1111) -> tuple[np.ndarray, ...]:
+    """Reversal-potential signs of ncps's ``FullyConnected`` wiring (self connections on).
+
+    Reproduces ncps's draw order: ``numpy.random.default_rng(seed).choice([-1, 1, 1])`` once per recurrent
+    synapse (source-major), then once per sensory synapse. Returns ``(erev (H, H), sensory_erev (S, H))``
+    (cached and read-only: Flax re-evaluates initialisers to check shapes).
+    """
+    rng = np.random.default_rng(seed)
+    choices = [-1, 1, 1]
+    recurrent = np.array([rng.choice(choices) for _ in range(hidden_size * hidden_size)], dtype=np.float32)
+    sensory = np.array([rng.choice(choices) for _ in range(input_size * hidden_size)], dtype=np.float32)
+    recurrent, sensory = recurrent.reshape(hidden_size, hidden_size), sensory.reshape(input_size, hidden_size)
+    recurrent.flags.writeable = sensory.flags.writeable = False
+    return recurrent, sensory
+
+
+def clip_ltc_parameters(variables: Any) -> Any:
+    """ReLU-clip ``w, sensory_w, cm, gleak`` (ncps ``apply_weight_constraints``; for explicit constraints)."""
+    params = dict(variables["params"])
+    for name in CONSTRAINED_PARAMETERS:
+        params[name] = jnp.maximum(params[name], 0)
+    return {**variables, "params": params}
+
+
+class LTCCell(nn.Module):
+    """LTC cell, fully connected. Call: ``cell.apply(variables, v, x, dt) -> (v_new, output)``.
+
+    Shapes: ``v`` (B, H) with ``H = hidden_size``; ``x`` (B, S); ``dt`` scalar, (B,) or (B, 1) (reshaped to
+    (B, 1)); ``v_new`` (B, H); ``output`` (B, M) = affine map of the first ``M = output_size`` neurons.
+    Parameters: ``gleak, vleak, cm`` (H); ``w, sigma, mu, erev`` (H, H) indexed [source, target];
+    ``sensory_w, sensory_sigma, sensory_mu, sensory_erev`` (S, H); ``input_w, input_b`` (S);
+    ``output_w, output_b`` (M). The reversal potentials start at ncps's ``FullyConnected`` signs.
+
+    Attributes:
+        hidden_size: number of neurons H (>= 1).
+        output_size: number of motor neurons M read out (1..H); ``None`` means H.
+        ode_unfolds: Euler sub-steps per input step (>= 1).
+        epsilon: added to the denominator (>= 0), as in ncps.
+        input_mapping / output_mapping: ``"affine"`` (w * x + b), ``"linear"`` (w * x) or ``"none"``.
+        implicit_param_constraints: softplus on ``w, sensory_w, cm, gleak`` (True) or identity (False).
+        erev_init_seed: seed of the ``FullyConnected`` polarity draw (ncps default 1111).
+        param_dtype: dtype of the parameters.
+    """
+
+    hidden_size: int
+    output_size: int | None = None
+    ode_unfolds: int = 6
+    epsilon: float = 1e-8
+    input_mapping: str = "affine"
+    output_mapping: str = "affine"
+    implicit_param_constraints: bool = True
+    erev_init_seed: int = 1111
+    param_dtype: Any = jnp.float32
+
+    def __post_init__(self) -> None:
+        check_int_at_least("hidden_size", self.hidden_size, 1)
+        if self.output_size is not None:
+            check_int_at_least("output_size", self.output_size, 1)
+            if isinstance(self.hidden_size, int) and self.output_size > self.hidden_size:
+                raise ValueError(f"output_size={self.output_size!r} is invalid; expected at most "
+                                 f"hidden_size={self.hidden_size}")
+        check_int_at_least("ode_unfolds", self.ode_unfolds, 1)
+        check_non_negative("epsilon", self.epsilon)
+        check_choice("input_mapping", self.input_mapping, LTC_MAPPINGS)
+        check_choice("output_mapping", self.output_mapping, LTC_MAPPINGS)
+        check_choice("implicit_param_constraints", self.implicit_param_constraints, (True, False))
+        super().__post_init__()
+
+    @property
+    def state_size(self) -> int:
+        """Size H of the recurrent state."""
+        return self.hidden_size
+
+    @property
+    def motor_size(self) -> int:
+        """Number M of neurons read out as the output."""
+        return self.hidden_size if self.output_size is None else self.output_size
+
+    def initial_state(self, batch_size: int, dtype: Any = jnp.float32) -> jax.Array:
+        """Zero state of shape (batch_size, H), as ncps uses when ``hx`` is None."""
+        return jnp.zeros((batch_size, self.hidden_size), dtype)
+
+    def _positive(self, value: jax.Array) -> jax.Array:
+        return jax.nn.softplus(value) if self.implicit_param_constraints else value
+
+    def _ranged(self, name: str, shape: tuple[int, ...]) -> jax.Array:
+        return self.param(name, uniform_range(*LTC_INIT_RANGES[name]), shape, self.param_dtype)
+
+    def _affine(self, prefix: str, mapping: str, values: jax.Array) -> jax.Array:
+        """Elementwise input/output mapping ``w * values (+ b)`` over the last axis."""
+        size = values.shape[-1]
+        if mapping in ("affine", "linear"):
+            values = values * self.param(f"{prefix}_w", nn.initializers.ones, (size,), self.param_dtype)
+        if mapping == "affine":
+            values = values + self.param(f"{prefix}_b", nn.initializers.zeros, (size,), self.param_dtype)
+        return values
+
+    @nn.compact
+    def __call__(self, state: jax.Array, inputs: jax.Array, dt: Any = 1.0) -> tuple[jax.Array, jax.Array]:
+        """Integrate over elapsed time ``dt``; returns ``(new_state (B, H), output (B, M))``."""
+        hidden, n_inputs = self.hidden_size, inputs.shape[-1]
+        erev_init, sensory_erev_init = fully_connected_polarities(hidden, n_inputs, self.erev_init_seed)
+        gleak = self._positive(self._ranged("gleak", (hidden,)))
+        vleak = self._ranged("vleak", (hidden,))
+        cm = self._positive(self._ranged("cm", (hidden,)))
+        sigma = self._ranged("sigma", (hidden, hidden))
+        mu = self._ranged("mu", (hidden, hidden))
+        w = self._positive(self._ranged("w", (hidden, hidden)))
+        erev = self.param("erev", constant_array(erev_init), (hidden, hidden), self.param_dtype)
+        sensory = {
+            "sigma": self._ranged("sensory_sigma", (n_inputs, hidden)),
+            "mu": self._ranged("sensory_mu", (n_inputs, hidden)),
+            "w": self._positive(self._ranged("sensory_w", (n_inputs, hidden))),
+            "erev": self.param("sensory_erev", constant_array(sensory_erev_init), (n_inputs, hidden),
+                               self.param_dtype),
+        }
+        mapped = self._affine("input", self.input_mapping, inputs)
+        sensory_num, sensory_den = synaptic_currents(mapped, sensory["w"], sensory["sigma"], sensory["mu"],
+                                                     sensory["erev"])
+        drive = gleak * vleak + sensory_num
+        conductance = gleak + sensory_den + self.epsilon
+        sub_step = as_time_delta(dt, inputs.shape[0], jnp.result_type(inputs, state)) / self.ode_unfolds
+        new_state = state
+        for _ in range(self.ode_unfolds):
+            recurrent_num, recurrent_den = synaptic_currents(new_state, w, sigma, mu, erev)
+            new_state = semi_implicit_euler_step(new_state, cm, drive + recurrent_num,
+                                                 conductance + recurrent_den, sub_step)
+        output = self._affine("output", self.output_mapping, new_state[:, : self.motor_size])
+        return new_state, output
+
+
+def synaptic_currents(
+    presynaptic: jax.Array, weight: jax.Array, sigma: jax.Array, mu: jax.Array, erev: jax.Array
+) -> tuple[jax.Array, jax.Array]:
+    """Summed synaptic drive and conductance onto each target neuron.
+
+    ``presynaptic`` (B, N); ``weight, sigma, mu, erev`` (N, H). Activation
+    ``a = weight * sigmoid(sigma * (presynaptic[:, :, None] - mu))`` (B, N, H); returns
+    ``(sum_N a * erev, sum_N a)``, both (B, H).
+    """
+    activation = weight * jax.nn.sigmoid(sigma * (presynaptic[:, :, None] - mu))
+    return jnp.sum(activation * erev, axis=1), jnp.sum(activation, axis=1)
+
+
+def semi_implicit_euler_step(
+    v: jax.Array, cm: jax.Array, drive: jax.Array, conductance: jax.Array, sub_step: jax.Array
+) -> jax.Array:
+    """One fused Euler sub-step ``v + s (drive - v G) / (cm + s G)``; exactly ``v`` when ``s = 0``.
+
+    ``v, drive, conductance`` (B, H); ``cm`` (H,); ``sub_step`` (B, 1). A zero denominator (only possible with
+    ``cm = 0`` and ``s = 0``) is replaced by 1 so that the update is 0 instead of NaN.
+    """
+    denominator = cm + sub_step * conductance
+    denominator = jnp.where(denominator == 0, jnp.ones_like(denominator), denominator)
+    return v + sub_step * (drive - v * conductance) / denominator

@@ -1,0 +1,121 @@
+"""Sequence unroll of a liquid cell with ``jax.lax.scan``: irregular time steps, episode resets, remat.
+
+Everything is time-major: ``inputs`` (T, B, I), ``dts`` (T, B, 1) / (T, B) / (T,) / scalar / None (= 1.0),
+``resets`` (T, B) booleans. A reset at step t replaces the incoming state of the samples that have it by
+``reset_state`` (zeros unless given) *before* step t is processed, so an episode boundary inside a sequence
+behaves exactly like starting a fresh unroll at t.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+
+class UnrollResult(NamedTuple):
+    """Outputs of :func:`unroll`: ``states`` (T, B, H) after each step; ``outputs`` (T, B, O) per step."""
+
+    states: jax.Array
+    outputs: jax.Array
+
+
+def time_deltas_for_sequence(dts: Any, length: int, batch_size: int, dtype: Any) -> jax.Array:
+    """Broadcast per-step time deltas to (T, B, 1). Accepts None (1.0), scalar, (T,), (T, B) or (T, B, 1)."""
+    if dts is None:
+        dts = 1.0
+    dts = jnp.asarray(dts, dtype=dtype)
+    if dts.ndim == 0:
+        return jnp.broadcast_to(dts, (length, batch_size, 1))
+    if dts.shape == (length,):
+        return jnp.broadcast_to(dts[:, None, None], (length, batch_size, 1))
+    if dts.shape in ((length, batch_size), (length, batch_size, 1)):
+        return dts.reshape(length, batch_size, 1)
+    raise ValueError(f"time deltas of shape {dts.shape} do not match a sequence of length {length} and batch "
+                     f"{batch_size}; expected a scalar, ({length},), ({length}, {batch_size}) or "
+                     f"({length}, {batch_size}, 1)")
+
+
+def scan_steps(
+    step: Callable[[jax.Array, Any, jax.Array], tuple[jax.Array, jax.Array]],
+    initial_state: jax.Array,
+    inputs: Any,
+    dts: jax.Array,
+    resets: jax.Array | None = None,
+    *,
+    reset_state: jax.Array | None = None,
+    remat: bool = False,
+) -> UnrollResult:
+    """Scan ``step(state (B, H), x, dt (B, 1)) -> (state, output)`` over time.
+
+    ``inputs`` is an array (T, B, I) or any pytree scanned along its leading (time) axis; ``dts`` (T, B, 1)
+    (already shaped); ``resets`` (T, B) or None; ``reset_state`` broadcastable to (B, H) (default zeros). With
+    ``remat`` each step is wrapped in ``jax.checkpoint``, so the backward pass stores only the (B, H) carries
+    and recomputes a step's intermediates (for LTC: B * H^2 * ode_unfolds values) when it needs them.
+    """
+    shape = (dts.shape[0], initial_state.shape[0])
+    if reset_state is None:
+        reset_state = jnp.zeros_like(initial_state)
+    reset_state = jnp.broadcast_to(jnp.asarray(reset_state, initial_state.dtype), initial_state.shape)
+    resets = jnp.zeros(shape, dtype=bool) if resets is None else jnp.asarray(resets, dtype=bool)
+    if resets.shape != shape:
+        raise ValueError(f"resets of shape {resets.shape} do not match the sequence's (T, B) = {shape}")
+    body_step = jax.checkpoint(step) if remat else step
+
+    def body(state, per_step):
+        x, dt, reset = per_step
+        state = jnp.where(reset[:, None], reset_state, state)
+        new_state, output = body_step(state, x, dt)
+        return new_state, (new_state, output)
+
+    _, (states, outputs) = jax.lax.scan(body, initial_state, (inputs, dts, resets))
+    return UnrollResult(states, outputs)
+
+
+def unroll(
+    cell: nn.Module,
+    variables: Any,
+    initial_state: jax.Array,
+    inputs: jax.Array,
+    dts: Any = None,
+    resets: jax.Array | None = None,
+    *,
+    reset_state: jax.Array | None = None,
+    remat: bool = False,
+    dropout_rng: jax.Array | None = None,
+) -> UnrollResult:
+    """Run ``cell`` (a :class:`CfCCell` or :class:`LTCCell`) with ``variables`` over a time-major sequence.
+
+    Args:
+        cell: the cell module (its config; parameters come from ``variables``).
+        variables: ``{'params': ...}`` as returned by ``cell.init`` or :func:`load_ncps_state_dict`.
+        initial_state: (B, H) state before the first step.
+        inputs: (T, B, I).
+        dts: elapsed time per step: None (1.0), scalar, (T,), (T, B) or (T, B, 1).
+        resets: optional (T, B) booleans; True restarts that sample from ``reset_state`` before the step.
+        reset_state: state after a reset, broadcastable to (B, H); zeros by default.
+        remat: rematerialise each step in the backward pass (``jax.checkpoint``).
+        dropout_rng: enables CfC backbone dropout (training mode) with a fresh key per step.
+
+    Returns:
+        ``UnrollResult(states (T, B, H), outputs (T, B, O))``; ``states[-1]`` is the final state.
+    Works under ``jax.vmap`` over stacked ``variables`` (one parameter set per seed) and under ``jax.jit``.
+    """
+    length, batch_size = inputs.shape[:2]
+    dts = time_deltas_for_sequence(dts, length, batch_size, jnp.result_type(inputs, initial_state))
+    options = {"reset_state": reset_state, "remat": remat}
+    if dropout_rng is None:
+        def step(state, x, dt):
+            return cell.apply(variables, state, x, dt)
+
+        return scan_steps(step, initial_state, inputs, dts, resets, **options)
+
+    def step_with_dropout(state, x_and_key, dt):
+        x, key = x_and_key
+        return cell.apply(variables, state, x, dt, deterministic=False, rngs={"dropout": key})
+
+    keyed_inputs = (inputs, jax.random.split(dropout_rng, length))
+    return scan_steps(step_with_dropout, initial_state, keyed_inputs, dts, resets, **options)
