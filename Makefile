@@ -1,0 +1,27 @@
+# lnnmpc — everything a user or CI needs runs through this file.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: install test lint fmt bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check src tests benchmarks experiments
+
+test: lint
+	$(VENV)/bin/pytest -q tests
+
+fmt: $(STAMP)
+	$(VENV)/bin/ruff check --fix src tests benchmarks experiments
+
+clean:
+	rm -rf $(VENV) build *.egg-info src/*.egg-info .pytest_cache

@@ -1,0 +1,1 @@
+"""lnnmpc: TD-MPC2 with liquid recurrent history encoders, on MJX."""

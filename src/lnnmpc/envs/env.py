@@ -1,0 +1,176 @@
+"""The environment: pure ``reset`` / ``step`` / ``reset_to`` over an :class:`EnvState` pytree.
+
+    env = make("walker-run", obs_noise=0.1)
+    state = jax.jit(env.reset)(jax.random.key(0))
+    state = jax.jit(env.step)(state, jnp.zeros(env.action_size))
+
+Batch with ``jax.vmap`` (environments, or seeds × environments with two vmaps). ``step`` never resets by itself;
+``state.done`` marks the time limit (truncation: dm_control never terminates these tasks early).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from flax import struct
+from mujoco import mjx
+
+from lnnmpc.envs import physics as phys
+from lnnmpc.envs.corruptions import (
+    CorruptionConfig,
+    CorruptionState,
+    corruption_reset,
+    corruption_step,
+    kept_indices,
+)
+from lnnmpc.envs.tasks import TASKS, TaskSpec, model_ids
+
+
+@struct.dataclass
+class EnvState:
+    """State of one environment (add leading axes with ``vmap``).
+
+    Attributes:
+      physics: the MJX physics state (``mjx.Data``), kinematics in sync with qpos/qvel.
+      obs: (obs_dim,) the observation the agent receives (after every corruption).
+      reward: () reward of the last agent step (summed over the action repeat); 0 after reset.
+      done: () bool, the episode's time limit is reached.
+      dt: () agent steps between the capture times of the previous and this delivered observation.
+      t: () int32 agent steps since reset.
+      key: PRNG key for the corruptions.
+      clean_obs: (full_obs_dim,) uncorrupted dm_control observation of the current physics state.
+      corruption: the corruption pipeline's state.
+    """
+
+    physics: mjx.Data
+    obs: jax.Array
+    reward: jax.Array
+    done: jax.Array
+    dt: jax.Array
+    t: jax.Array
+    key: jax.Array
+    clean_obs: jax.Array
+    corruption: CorruptionState
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Env:
+    """A dm_control task on MJX with an observation-corruption pipeline. Build with :func:`make`."""
+
+    spec: TaskSpec
+    action_repeat: int
+    physics_options: phys.PhysicsOptions
+    corruption: CorruptionConfig
+    mj_model: mujoco.MjModel
+    mjx_model: mjx.Model
+    ids: dict
+    joints: dict
+    kept: np.ndarray
+
+    # ------------------------------------------------------------------------------------- shapes
+    @property
+    def name(self) -> str:
+        return self.spec.name
+
+    @property
+    def action_size(self) -> int:
+        return int(self.mj_model.nu)
+
+    @property
+    def observation_size(self) -> int:
+        return int(self.kept.size)
+
+    @property
+    def episode_length(self) -> int:
+        """Agent steps per episode (control steps / action repeat, rounded up)."""
+        return -(-self.spec.control_steps // self.action_repeat)
+
+    # -------------------------------------------------------------------------------- internals
+    def _clean_obs(self, data: mjx.Data) -> jax.Array:
+        return jnp.concatenate([value for _, value in self.spec.observe(data, self.ids)])
+
+    def _start(self, data: mjx.Data, key: jax.Array) -> EnvState:
+        clean = self._clean_obs(data)
+        cstate, obs, dt = corruption_reset(self.corruption, key, clean[self.kept])
+        zero = jnp.zeros((), clean.dtype)
+        return EnvState(
+            physics=data, obs=obs, reward=zero, done=jnp.zeros((), bool), dt=dt,
+            t=jnp.zeros((), jnp.int32), key=jax.random.fold_in(key, 1), clean_obs=clean, corruption=cstate,
+        )
+
+    # ---------------------------------------------------------------------------------- public
+    def initial_qpos_qvel(self, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Samples dm_control's initial-state distribution: (qpos (nq,), qvel (nv,))."""
+        return self.spec.init(key, self.joints, self.mj_model.nq, self.mj_model.nv)
+
+    def reset(self, key: jax.Array) -> EnvState:
+        """Starts an episode from dm_control's initial-state distribution."""
+        k_init, k_obs = jax.random.split(key)
+        qpos, qvel = self.initial_qpos_qvel(k_init)
+        return self.reset_to(qpos, qvel, k_obs)
+
+    def reset_to(self, qpos: jax.Array, qvel: jax.Array, key: jax.Array | None = None) -> EnvState:
+        """Starts an episode at a given physics state (qpos (nq,), qvel (nv,)); ``key`` seeds corruptions."""
+        nq, nv = self.mj_model.nq, self.mj_model.nv
+        if jnp.shape(qpos)[-1:] != (nq,) or jnp.shape(qvel)[-1:] != (nv,):
+            raise ValueError(
+                f"{self.name}: qpos/qvel must have shapes ({nq},) and ({nv},), "
+                f"got {jnp.shape(qpos)} and {jnp.shape(qvel)}"
+            )
+        key = jax.random.key(0) if key is None else key
+        data = phys.data_from_state(self.mjx_model, qpos, qvel)
+        return self._start(data, key)
+
+    def step(self, state: EnvState, action: jax.Array) -> EnvState:
+        """Applies ``action`` (action_size,) for ``action_repeat`` control steps; rewards are summed."""
+        action = jnp.asarray(action)
+        if action.shape != (self.action_size,):
+            raise ValueError(
+                f"{self.name}: action must have shape ({self.action_size},), got {action.shape} "
+                "(use jax.vmap for batches)"
+            )
+
+        def control(data, _):
+            data = phys.control_step(
+                self.mjx_model, data, action, self.spec.n_substeps, self.spec.needs_velocity_sensors
+            )
+            return data, self.spec.reward(data, action, self.ids)
+
+        data, rewards = jax.lax.scan(control, state.physics, None, length=self.action_repeat)
+        t = state.t + 1
+        clean = self._clean_obs(data)
+        key, k_obs = jax.random.split(state.key)
+        cstate, obs, dt = corruption_step(self.corruption, state.corruption, k_obs, t, clean[self.kept])
+        return EnvState(
+            physics=data, obs=obs, reward=jnp.sum(rewards).astype(clean.dtype),
+            done=t * self.action_repeat >= self.spec.control_steps, dt=dt, t=t, key=key,
+            clean_obs=clean, corruption=cstate,
+        )
+
+
+def make(task: str, *, physics: str | phys.PhysicsOptions = "fast", action_repeat: int = 2, **obs_options) -> Env:
+    """Builds an environment.
+
+    Args:
+      task: one of :data:`TASKS` (e.g. "walker-run", "cartpole-swingup-sparse").
+      physics: "fast" (training default), "exact" (dm_control's solver), or a :class:`PhysicsOptions`.
+      action_repeat: control steps per agent step (>= 1); rewards are summed over them.
+      **obs_options: ``remove_vel``, ``obs_noise``, ``flicker``, ``delay`` (see :mod:`lnnmpc.envs.corruptions`).
+    """
+    if task not in TASKS:
+        raise ValueError(f"unknown task {task!r}; known: {', '.join(TASKS)}")
+    if isinstance(action_repeat, bool) or not isinstance(action_repeat, int | np.integer) or action_repeat < 1:
+        raise ValueError(f"action_repeat must be an integer >= 1, got {action_repeat!r}")
+    spec = TASKS[task]
+    options = phys.resolve_profile(physics)
+    corruption = CorruptionConfig.from_options(obs_options)
+    model = phys.load_model(spec.domain, options)
+    return Env(
+        spec=spec, action_repeat=int(action_repeat), physics_options=options, corruption=corruption,
+        mj_model=model, mjx_model=phys.put_model(model), ids=model_ids(spec.domain, model),
+        joints=phys.joint_info(model), kept=kept_indices(spec.obs_keys, corruption),
+    )

@@ -1,0 +1,176 @@
+"""MuJoCo models from dm_control's own XML, physics profiles, and the MJX control step.
+
+Two named profiles:
+
+* ``"exact"`` keeps dm_control's options: solver iterations, line search, integrator (RK4 for cartpole and
+  acrobot, Euler for walker) and Euler damping. Only the energy flag is cleared: MJX cannot compute energy and
+  none of these tasks reads it. With ``jax_enable_x64`` this steps like ``dm_control.suite.load`` to ~1e-10.
+* ``"fast"`` (the training default) only lowers the constraint solver's effort:
+  Newton ``iterations=1`` and ``ls_iterations=4`` (dm_control: 100 / 50). Newton converges in one or two steps on
+  these small problems and is warm-started from the previous step's accelerations, so trajectories stay within
+  float32 noise of ``exact`` over short horizons (see ``tests/test_env_fast.py``). Integrators, time steps and
+  contact geometry are unchanged, so the dynamics the agent learns are dm_control's.
+
+Any other combination can be given as a :class:`PhysicsOptions`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+PROFILES = ("exact", "fast")
+INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4}
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsOptions:
+    """Changes applied to dm_control's compiled model; ``None`` keeps dm_control's value.
+
+    Attributes:
+      iterations: constraint solver iterations (dm_control: 100).
+      ls_iterations: line-search iterations (dm_control: 50).
+      integrator: "euler" or "rk4".
+      disable_eulerdamp: turn off implicit joint damping in the Euler integrator.
+      max_contact_points: MJX cap on contacts kept per step (walker only has contacts).
+    """
+
+    iterations: int | None = None
+    ls_iterations: int | None = None
+    integrator: str | None = None
+    disable_eulerdamp: bool = False
+    max_contact_points: int | None = None
+
+    def __post_init__(self):
+        for name in ("iterations", "ls_iterations", "max_contact_points"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, int) or value < 1):
+                raise ValueError(f"PhysicsOptions.{name} must be an int >= 1 or None, got {value!r}")
+        if self.integrator is not None and self.integrator not in INTEGRATORS:
+            raise ValueError(
+                f"unknown integrator {self.integrator!r}; known: {', '.join(INTEGRATORS)}"
+            )
+
+
+NAMED_PROFILES = {
+    "exact": PhysicsOptions(),
+    "fast": PhysicsOptions(iterations=1, ls_iterations=4),
+}
+
+
+def resolve_profile(physics: str | PhysicsOptions) -> PhysicsOptions:
+    """Turns a profile name or options object into :class:`PhysicsOptions`."""
+    if isinstance(physics, PhysicsOptions):
+        return physics
+    if physics not in NAMED_PROFILES:
+        raise ValueError(f"unknown physics profile {physics!r}; known: {', '.join(PROFILES)}")
+    return NAMED_PROFILES[physics]
+
+
+def _dm_control_xml(domain: str) -> tuple[str, dict[str, bytes]]:
+    """Reads ``<domain>.xml`` and the common assets from the installed dm_control package.
+
+    Reads the files directly instead of importing ``dm_control.suite``, which would initialise a rendering
+    backend; the bytes are those ``suite.<domain>.get_model_and_assets()`` returns.
+    """
+    import dm_control
+
+    suite_dir = os.path.join(os.path.dirname(dm_control.__file__), "suite")
+    with open(os.path.join(suite_dir, f"{domain}.xml")) as f:
+        xml = f.read()
+    assets = {}
+    for name in ("materials.xml", "skybox.xml", "visual.xml"):
+        with open(os.path.join(suite_dir, "common", name), "rb") as f:
+            assets[f"./common/{name}"] = f.read()
+    return xml, assets
+
+
+def _with_contact_cap(xml: str, max_contact_points: int) -> str:
+    custom = (
+        f'<custom><numeric name="max_contact_points" data="{max_contact_points}"/>'
+        f'<numeric name="max_geom_pairs" data="{max_contact_points}"/></custom>'
+    )
+    return xml.replace("</mujoco>", custom + "</mujoco>")
+
+
+@functools.cache
+def load_model(domain: str, options: PhysicsOptions) -> mujoco.MjModel:
+    """Compiles dm_control's XML for ``domain`` and applies ``options`` (a new MjModel, cached)."""
+    xml, assets = _dm_control_xml(domain)
+    if options.max_contact_points is not None:
+        xml = _with_contact_cap(xml, options.max_contact_points)
+    model = mujoco.MjModel.from_xml_string(xml, assets)
+    # MJX cannot compute energy (NotImplementedError in put_model); no task here reads it.
+    model.opt.enableflags &= ~int(mujoco.mjtEnableBit.mjENBL_ENERGY)
+    if options.iterations is not None:
+        model.opt.iterations = options.iterations
+    if options.ls_iterations is not None:
+        model.opt.ls_iterations = options.ls_iterations
+    if options.integrator is not None:
+        model.opt.integrator = INTEGRATORS[options.integrator]
+    if options.disable_eulerdamp:
+        model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
+    return model
+
+
+def put_model(model: mujoco.MjModel) -> mjx.Model:
+    """Places the model on the default JAX device (float64 when ``jax_enable_x64`` is on)."""
+    return mjx.put_model(model, impl="jax")
+
+
+def sync_kinematics(mx: mjx.Model, data: mjx.Data, with_velocity_sensors: bool) -> mjx.Data:
+    """Recomputes position- (and optionally velocity-sensor) fields from the current qpos/qvel.
+
+    ``mjx.step`` leaves xpos/xmat/site_xpos from before integration; dm_control re-syncs them with
+    ``mj_step1`` before reading observations and rewards. ``with_velocity_sensors`` also refreshes the
+    velocity sensors (walker's ``torso_subtreelinvel``), which need the com-based quantities.
+    """
+    data = mjx.kinematics(mx, data)
+    if with_velocity_sensors:
+        data = mjx.com_pos(mx, data)
+        data = mjx.com_vel(mx, data)
+        data = mjx.sensor_vel(mx, data)
+    return data
+
+
+def control_step(
+    mx: mjx.Model, data: mjx.Data, action: jax.Array, n_substeps: int, with_velocity_sensors: bool
+) -> mjx.Data:
+    """One dm_control control step: set ``ctrl``, take ``n_substeps`` physics steps, re-sync kinematics.
+
+    Args:
+      action: (nu,) raw action; MuJoCo clamps it to ctrlrange internally, like dm_control.
+    """
+    data = data.replace(ctrl=action.astype(data.ctrl.dtype))
+
+    def substep(d, _):
+        return mjx.step(mx, d), None
+
+    data, _ = jax.lax.scan(substep, data, None, length=n_substeps)
+    return sync_kinematics(mx, data, with_velocity_sensors)
+
+
+def data_from_state(mx: mjx.Model, qpos: jax.Array, qvel: jax.Array) -> mjx.Data:
+    """Fresh ``mjx.Data`` at (qpos, qvel), as after dm_control's ``reset_context`` (which ends in mj_forward)."""
+    data = mjx.make_data(mx)
+    dtype = data.qpos.dtype
+    data = data.replace(qpos=jnp.asarray(qpos, dtype), qvel=jnp.asarray(qvel, dtype))
+    return mjx.forward(mx, data)
+
+
+def joint_info(model: mujoco.MjModel) -> dict[str, np.ndarray]:
+    """Static per-joint arrays used by the initial-state samplers."""
+    return {
+        "type": np.asarray(model.jnt_type).copy(),
+        "limited": np.asarray(model.jnt_limited).astype(bool),
+        "range": np.asarray(model.jnt_range).copy(),
+        "qposadr": np.asarray(model.jnt_qposadr).copy(),
+        "qpos0": np.asarray(model.qpos0).copy(),
+    }
