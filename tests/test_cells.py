@@ -1,4 +1,4 @@
-"""Behaviour of the liquid cells and the unroll: shapes, Δt handling, resets, gradients, vmap, remat, configs."""
+"""Liquid cells and unroll: shapes, Δt handling, resets, gradients, vmap, remat, configs."""
 
 from __future__ import annotations
 
@@ -15,7 +15,9 @@ from lnnmpc.nets import CfCCell, LTCCell, clip_ltc_parameters, unroll
 BATCH, INPUTS, HIDDEN = 3, 4, 6
 CELLS = {
     "cfc_default": CfCCell(HIDDEN, backbone_units=10),
-    "cfc_no_gate": CfCCell(HIDDEN, mode="no_gate", backbone_units=10, backbone_layers=2, backbone_activation="gelu"),
+    "cfc_no_gate": CfCCell(
+        HIDDEN, mode="no_gate", backbone_units=10, backbone_layers=2, backbone_activation="gelu"
+    ),
     "cfc_pure": CfCCell(HIDDEN, mode="pure", backbone_units=10),
     "ltc": LTCCell(HIDDEN),
     "ltc_explicit_3_outputs": LTCCell(HIDDEN, output_size=3, implicit_param_constraints=False),
@@ -38,7 +40,10 @@ def random_sequence(length: int, seed: int = 1, max_dt: float = 5.0):
 
 @functools.cache
 def jitted_unroll(cell, remat: bool = False):
-    return jax.jit(lambda variables, h0, xs, dts, resets: unroll(cell, variables, h0, xs, dts, resets, remat=remat))
+    def run(variables, h0, xs, dts, resets):
+        return unroll(cell, variables, h0, xs, dts, resets, remat=remat)
+
+    return jax.jit(run)
 
 
 @functools.cache
@@ -211,8 +216,8 @@ def test_remat_gives_same_values_and_gradients(name):
     plain_loss, plain_grads = jitted_loss_grad(cell, False)(variables, h0, inputs, dts)
     remat_loss, remat_grads = jitted_loss_grad(cell, True)(variables, h0, inputs, dts)
     np.testing.assert_allclose(remat_loss, plain_loss, rtol=1e-6)
-    for remat_grad, plain_grad in zip(jax.tree.leaves(remat_grads), jax.tree.leaves(plain_grads), strict=True):
-        np.testing.assert_allclose(remat_grad, plain_grad, atol=1e-6, rtol=1e-5)
+    for remat, plain in zip(jax.tree.leaves(remat_grads), jax.tree.leaves(plain_grads), strict=True):
+        np.testing.assert_allclose(remat, plain, atol=1e-6, rtol=1e-5)
 
 
 def test_backbone_dropout_is_active_only_after_layer_two_and_with_an_rng():

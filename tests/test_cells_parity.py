@@ -23,7 +23,8 @@ def load_fixture(path: Path) -> tuple[dict, dict[str, np.ndarray], dict[str, np.
     with np.load(path) as data:
         arrays = {key: data[key] for key in data.files}
     config = json.loads(str(arrays.pop("config")))
-    state_dict = {key.removeprefix("param:"): arrays.pop(key) for key in list(arrays) if key.startswith("param:")}
+    param_keys = [key for key in arrays if key.startswith("param:")]
+    state_dict = {key.removeprefix("param:"): arrays.pop(key) for key in param_keys}
     return config, state_dict, arrays
 
 
@@ -33,7 +34,8 @@ def test_fixture_set_covers_every_mode_and_cell():
     assert {c["kwargs"]["mode"] for c in cfc} == {"default", "no_gate", "pure"}
     assert any(c["kwargs"]["backbone_layers"] >= 2 for c in cfc)
     assert {c["kwargs"]["backbone_activation"] for c in cfc} - {"lecun_tanh"}
-    assert {c["kwargs"]["implicit_param_constraints"] for c in configs if c["cell"] == "LTCCell"} == {True, False}
+    ltc = [c for c in configs if c["cell"] == "LTCCell"]
+    assert {c["kwargs"]["implicit_param_constraints"] for c in ltc} == {True, False}
     assert {c["protocol"] for c in configs} == {"cell_steps", "wrapper"}
     assert sum(path.stat().st_size for path in FIXTURES) < 500_000
 
