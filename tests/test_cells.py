@@ -61,10 +61,11 @@ def test_unroll_shapes_and_dtypes(name):
     variables = init_cell(cell)
     inputs, dts, h0 = random_sequence(7)
     result = jitted_unroll(cell)(variables, h0, inputs, dts, None)
-    out_size = getattr(cell, "motor_size", HIDDEN)
+    out_size = cell.readout_size
     assert result.states.shape == (7, BATCH, HIDDEN) and result.outputs.shape == (7, BATCH, out_size)
     assert result.states.dtype == result.outputs.dtype == jnp.float32
-    assert cell.initial_state(BATCH).shape == (BATCH, cell.state_size)
+    assert cell.initial_state(BATCH).shape == (BATCH, cell.state_size) and cell.state_size == HIDDEN
+    assert out_size == (3 if name == "ltc_explicit_3_outputs" else HIDDEN)
     new_state, output = cell.apply(variables, h0, inputs[0], dts[0])
     np.testing.assert_allclose(new_state, result.states[0], atol=1e-6, rtol=0)  # eager vs jit: rounding only
     np.testing.assert_allclose(output, result.outputs[0], atol=1e-6, rtol=0)
@@ -177,6 +178,8 @@ def test_unroll_time_delta_forms_are_equivalent():
         np.testing.assert_array_equal(unroll(cell, variables, h0, inputs, dts).states, reference.states)
     np.testing.assert_array_equal(unroll(cell, variables, h0, inputs).states,
                                   unroll(cell, variables, h0, inputs, 1.0).states)
+    unrolled_loop = unroll(cell, variables, h0, inputs, per_step, scan_unroll=3).states
+    np.testing.assert_allclose(unrolled_loop, reference.states, atol=1e-6, rtol=0)
     with pytest.raises(ValueError, match="time deltas"):
         unroll(cell, variables, h0, inputs, jnp.ones((5, BATCH)))
     with pytest.raises(ValueError, match="resets"):
@@ -218,6 +221,17 @@ def test_remat_gives_same_values_and_gradients(name):
     np.testing.assert_allclose(remat_loss, plain_loss, rtol=1e-6)
     for remat, plain in zip(jax.tree.leaves(remat_grads), jax.tree.leaves(plain_grads), strict=True):
         np.testing.assert_allclose(remat, plain, atol=1e-6, rtol=1e-5)
+
+
+def test_ltc_stored_synapses_give_same_values_and_gradients():
+    recomputing, storing = CELLS["ltc"], LTCCell(HIDDEN, recompute_synapses=False)
+    variables = init_cell(recomputing)
+    inputs, dts, h0 = random_sequence(10)
+    loss, grads = jitted_loss_grad(recomputing)(variables, h0, inputs, dts)
+    stored_loss, stored_grads = jitted_loss_grad(storing)(variables, h0, inputs, dts)
+    np.testing.assert_allclose(stored_loss, loss, rtol=1e-6)
+    for stored, recomputed in zip(jax.tree.leaves(stored_grads), jax.tree.leaves(grads), strict=True):
+        np.testing.assert_allclose(stored, recomputed, atol=1e-6, rtol=1e-5)
 
 
 def test_backbone_dropout_is_active_only_after_layer_two_and_with_an_rng():

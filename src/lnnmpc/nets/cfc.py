@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 
 from lnnmpc.nets.common import (
+    ZeroInitialState,
     as_time_delta,
     check_choice,
     check_fraction,
@@ -57,7 +58,7 @@ def torch_style_dense(features: int, fan_in: int, name: str, param_dtype: Any) -
     )
 
 
-class CfCCell(nn.Module):
+class CfCCell(ZeroInitialState, nn.Module):
     """CfC cell. Call: ``cell.apply(variables, h, x, dt) -> (h_new, output)`` with ``output is h_new``.
 
     Shapes: ``h`` (B, H) with ``H = hidden_size``; ``x`` (B, I); ``dt`` scalar, (B,) or (B, 1) (reshaped to
@@ -94,18 +95,9 @@ class CfCCell(nn.Module):
         super().__post_init__()
 
     @property
-    def state_size(self) -> int:
-        """Size H of the recurrent state."""
+    def readout_size(self) -> int:
+        """Size of the per-step output (the state itself for CfC)."""
         return self.hidden_size
-
-    @property
-    def output_size(self) -> int:
-        """Size of the per-step output (equal to the state for CfC)."""
-        return self.hidden_size
-
-    def initial_state(self, batch_size: int, dtype: Any = jnp.float32) -> jax.Array:
-        """Zero state of shape (batch_size, H), as ncps uses when ``hx`` is None."""
-        return jnp.zeros((batch_size, self.hidden_size), dtype)
 
     def _backbone(self, features: jax.Array, deterministic: bool) -> jax.Array:
         """Apply the backbone layers: (B, I+H) -> (B, U); identity when ``backbone_layers == 0``."""

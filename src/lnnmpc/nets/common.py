@@ -34,6 +34,21 @@ def check_non_negative(name: str, value: Any) -> None:
         raise ValueError(f"{name}={value!r} is invalid; expected a finite number >= 0")
 
 
+class ZeroInitialState:
+    """Mixin for cells whose recurrent state is a (B, hidden_size) array that starts at zero."""
+
+    hidden_size: int
+
+    @property
+    def state_size(self) -> int:
+        """Size H of the recurrent state."""
+        return self.hidden_size
+
+    def initial_state(self, batch_size: int, dtype: Any = jnp.float32) -> jax.Array:
+        """Zero state of shape (batch_size, H), as ncps uses when ``hx`` is None."""
+        return jnp.zeros((batch_size, self.hidden_size), dtype)
+
+
 def as_time_delta(dt: Any, batch_size: int, dtype: Any) -> jax.Array:
     """Return the elapsed time as a ``(B, 1)`` array.
 

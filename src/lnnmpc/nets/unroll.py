@@ -48,6 +48,7 @@ def scan_steps(
     *,
     reset_state: jax.Array | None = None,
     remat: bool = False,
+    scan_unroll: int = 1,
 ) -> UnrollResult:
     """Scan ``step(state (B, H), x, dt (B, 1)) -> (state, output)`` over time.
 
@@ -55,6 +56,7 @@ def scan_steps(
     (already shaped); ``resets`` (T, B) or None; ``reset_state`` broadcastable to (B, H) (default zeros). With
     ``remat`` each step is wrapped in ``jax.checkpoint``, so the backward pass stores only the (B, H) carries
     and recomputes a step's intermediates (for LTC: B * H^2 * ode_unfolds values) when it needs them.
+    ``scan_unroll`` is passed to ``jax.lax.scan(unroll=...)`` (steps per loop iteration; a speed knob only).
     """
     shape = (dts.shape[0], initial_state.shape[0])
     if reset_state is None:
@@ -71,7 +73,7 @@ def scan_steps(
         new_state, output = body_step(state, x, dt)
         return new_state, (new_state, output)
 
-    _, (states, outputs) = jax.lax.scan(body, initial_state, (inputs, dts, resets))
+    _, (states, outputs) = jax.lax.scan(body, initial_state, (inputs, dts, resets), unroll=scan_unroll)
     return UnrollResult(states, outputs)
 
 
@@ -86,6 +88,7 @@ def unroll(
     reset_state: jax.Array | None = None,
     remat: bool = False,
     dropout_rng: jax.Array | None = None,
+    scan_unroll: int = 1,
 ) -> UnrollResult:
     """Run ``cell`` (a :class:`CfCCell` or :class:`LTCCell`) with ``variables`` over a time-major sequence.
 
@@ -99,6 +102,7 @@ def unroll(
         reset_state: state after a reset, broadcastable to (B, H); zeros by default.
         remat: rematerialise each step in the backward pass (``jax.checkpoint``).
         dropout_rng: enables CfC backbone dropout (training mode) with a fresh key per step.
+        scan_unroll: time steps per ``lax.scan`` loop iteration (same results; may be faster on GPU).
 
     Returns:
         ``UnrollResult(states (T, B, H), outputs (T, B, O))``; ``states[-1]`` is the final state.
@@ -106,7 +110,7 @@ def unroll(
     """
     length, batch_size = inputs.shape[:2]
     dts = time_deltas_for_sequence(dts, length, batch_size, jnp.result_type(inputs, initial_state))
-    options = {"reset_state": reset_state, "remat": remat}
+    options = {"reset_state": reset_state, "remat": remat, "scan_unroll": scan_unroll}
     if dropout_rng is None:
         def step(state, x, dt):
             return cell.apply(variables, state, x, dt)
