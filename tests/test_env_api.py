@@ -1,0 +1,98 @@
+"""Environment API: task list, shapes, time limit, and clear errors for bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lnnmpc import envs
+
+EXPECTED_TASKS = {
+    "cartpole-balance", "cartpole-balance-sparse", "cartpole-swingup", "cartpole-swingup-sparse",
+    "acrobot-swingup", "acrobot-swingup-sparse", "walker-stand", "walker-walk", "walker-run",
+}
+
+
+def test_all_nine_tasks_with_dm_control_sizes():
+    assert set(envs.TASKS) == EXPECTED_TASKS
+    sizes = {"cartpole": (5, 1), "acrobot": (6, 1), "walker": (24, 6)}
+    for task in EXPECTED_TASKS:
+        env = envs.make(task)
+        assert (env.observation_size, env.action_size) == sizes[env.spec.domain], task
+        assert env.episode_length == 500
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"task": "cartpole-swing"}, "unknown task 'cartpole-swing'.*cartpole-swingup"),
+        ({"task": "walker-run", "physics": "turbo"}, "unknown physics profile 'turbo'.*exact, fast"),
+        ({"task": "walker-run", "obs_noize": 0.1}, r"unknown observation option.*obs_noize.*obs_noise"),
+        ({"task": "walker-run", "obs_noise": -0.1}, "obs_noise must be >= 0.*-0.1"),
+        ({"task": "walker-run", "flicker": -1.0}, "flicker must be >= 0.*-1.0"),
+        ({"task": "walker-run", "delay": -2}, "delay must be an integer.*>= 0.*-2"),
+        ({"task": "walker-run", "delay": 1.5}, "delay must be an integer.*1.5"),
+        ({"task": "walker-run", "remove_vel": "yes"}, "remove_vel must be True or False.*yes"),
+        ({"task": "walker-run", "action_repeat": 0}, "action_repeat must be an integer >= 1, got 0"),
+    ],
+)
+def test_bad_input_names_value_and_allowed(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        kwargs = dict(kwargs)
+        task = kwargs.pop("task")
+        envs.make(task, **kwargs)
+
+
+def test_physics_options_validation():
+    with pytest.raises(ValueError, match="iterations must be an int >= 1 or None, got 0"):
+        envs.PhysicsOptions(iterations=0)
+    with pytest.raises(ValueError, match="unknown integrator 'rk45'; known: euler, rk4"):
+        envs.PhysicsOptions(integrator="rk45")
+
+
+@pytest.fixture(scope="module")
+def acrobot():
+    return envs.make("acrobot-swingup")
+
+
+def test_wrong_action_shape_and_state_shape(acrobot):
+    state = jax.jit(acrobot.reset)(jax.random.key(0))
+    with pytest.raises(ValueError, match=r"action must have shape \(1,\), got \(2,\)"):
+        acrobot.step(state, jnp.zeros(2))
+    with pytest.raises(ValueError, match=r"qpos/qvel must have shapes \(2,\) and \(2,\)"):
+        acrobot.reset_to(jnp.zeros(3), jnp.zeros(2))
+
+
+def test_state_fields_and_time_limit(acrobot):
+    """500 agent steps of action repeat 2 = 1000 dm_control steps; done exactly at the last one."""
+
+    def episode(key):
+        state = acrobot.reset(key)
+
+        def body(state, _):
+            state = acrobot.step(state, jnp.ones(1))
+            return state, (state.done, state.reward, state.t)
+
+        return state, jax.lax.scan(body, state, None, length=acrobot.episode_length)[1]
+
+    first, (done, reward, t) = jax.jit(episode)(jax.random.key(3))
+    assert first.obs.shape == (6,) and first.clean_obs.shape == (6,)
+    assert first.reward.shape == () and first.done.dtype == jnp.bool_ and not bool(first.done)
+    assert float(first.dt) == 1.0 and int(first.t) == 0
+    done = np.asarray(done)
+    assert not done[:-1].any() and done[-1]
+    np.testing.assert_array_equal(np.asarray(t), np.arange(1, 501))
+    reward = np.asarray(reward)
+    assert np.all((reward >= 0) & (reward <= 2.0))  # two dm_control rewards in [0, 1] per agent step
+
+
+def test_reset_matches_reset_to_of_sampled_state(acrobot):
+    key = jax.random.key(11)
+    state = jax.jit(acrobot.reset)(key)
+    k_init, k_obs = jax.random.split(key)
+    qpos, qvel = acrobot.initial_qpos_qvel(k_init)
+    again = jax.jit(acrobot.reset_to)(qpos, qvel, k_obs)
+    np.testing.assert_allclose(np.asarray(state.obs), np.asarray(again.obs), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(state.physics.qpos), np.asarray(qpos), atol=1e-6)
