@@ -157,17 +157,15 @@ class LTCCell(ZeroInitialState, nn.Module):
         mu = self._ranged("mu", (hidden, hidden))
         w = self._positive(self._ranged("w", (hidden, hidden)))
         erev = self.param("erev", constant_array(erev_init), (hidden, hidden), self.param_dtype)
-        sensory = {
-            "sigma": self._ranged("sensory_sigma", (n_inputs, hidden)),
-            "mu": self._ranged("sensory_mu", (n_inputs, hidden)),
-            "w": self._positive(self._ranged("sensory_w", (n_inputs, hidden))),
-            "erev": self.param("sensory_erev", constant_array(sensory_erev_init), (n_inputs, hidden),
-                               self.param_dtype),
-        }
+        sensory_synapses = (
+            self._positive(self._ranged("sensory_w", (n_inputs, hidden))),
+            self._ranged("sensory_sigma", (n_inputs, hidden)),
+            self._ranged("sensory_mu", (n_inputs, hidden)),
+            self.param("sensory_erev", constant_array(sensory_erev_init), (n_inputs, hidden), self.param_dtype),
+        )
         currents = jax.checkpoint(synaptic_currents) if self.recompute_synapses else synaptic_currents
         mapped = self._affine("input", self.input_mapping, inputs)
-        sensory_num, sensory_den = currents(mapped, sensory["w"], sensory["sigma"], sensory["mu"],
-                                                     sensory["erev"])
+        sensory_num, sensory_den = currents(mapped, *sensory_synapses)
         drive = gleak * vleak + sensory_num
         conductance = gleak + sensory_den + self.epsilon
         sub_step = as_time_delta(dt, inputs.shape[0], jnp.result_type(inputs, state)) / self.ode_unfolds

@@ -55,7 +55,8 @@ def scan_steps(
     ``inputs`` is an array (T, B, I) or any pytree scanned along its leading (time) axis; ``dts`` (T, B, 1)
     (already shaped); ``resets`` (T, B) or None; ``reset_state`` broadcastable to (B, H) (default zeros). With
     ``remat`` each step is wrapped in ``jax.checkpoint``, so the backward pass stores only the (B, H) carries
-    and recomputes a step's intermediates (for LTC: B * H^2 * ode_unfolds values) when it needs them.
+    and recomputes a step's intermediates when it needs them (an LTC with ``recompute_synapses=False``
+    otherwise keeps several B * H^2 tensors per sub-step).
     ``scan_unroll`` is passed to ``jax.lax.scan(unroll=...)`` (steps per loop iteration; a speed knob only).
     """
     shape = (dts.shape[0], initial_state.shape[0])
