@@ -30,6 +30,12 @@ WALKER_SWEEP = {
     "it1-ls1": envs.PhysicsOptions(iterations=1, ls_iterations=1),
     "fast+contacts4": envs.PhysicsOptions(iterations=1, ls_iterations=4, max_contact_points=4),
     "it2-ls4": envs.PhysicsOptions(iterations=2, ls_iterations=4),
+    "it3-ls6": envs.PhysicsOptions(iterations=3, ls_iterations=6),
+    "it4-ls8": envs.PhysicsOptions(iterations=4, ls_iterations=8),
+    "it4-ls8+noeulerdamp": envs.PhysicsOptions(iterations=4, ls_iterations=8, disable_eulerdamp=True),
+    "it4-ls4": envs.PhysicsOptions(iterations=4, ls_iterations=4),
+    "it3-ls4": envs.PhysicsOptions(iterations=3, ls_iterations=4),
+    "cg-it8-ls8": envs.PhysicsOptions(solver="cg", iterations=8, ls_iterations=8),
 }
 
 
@@ -67,13 +73,14 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=50, help="agent steps per timed rollout")
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--walker-sweep", action="store_true", help="time candidate walker settings instead")
+    parser.add_argument("--sweep", default=",".join(WALKER_SWEEP), help="which candidates --walker-sweep times")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     batches = [int(b) for b in args.batches.split(",")]
     out = args.out or default_out("env_throughput" + ("-walker-sweep" if args.walker_sweep else ""))
     payload = {"benchmark": "env_throughput", "env": environment_info(), "args": vars(args), "results": []}
     if args.walker_sweep:
-        jobs = [("walker-run", name, options, b) for name, options in WALKER_SWEEP.items() for b in batches]
+        jobs = [("walker-run", name, WALKER_SWEEP[name], b) for name in args.sweep.split(",") for b in batches]
     else:
         jobs = [
             (DOMAIN_TASKS[d], p, p, b) for p in args.profiles.split(",") for d in args.domains.split(",")

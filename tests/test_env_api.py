@@ -50,6 +50,18 @@ def test_physics_options_validation():
         envs.PhysicsOptions(iterations=0)
     with pytest.raises(ValueError, match="unknown integrator 'rk45'; known: euler, rk4"):
         envs.PhysicsOptions(integrator="rk45")
+    with pytest.raises(ValueError, match="unknown solver 'pgs'; known: newton, cg"):
+        envs.PhysicsOptions(solver="pgs")
+    with pytest.raises(ValueError, match="timestep must be a positive number of seconds, got -0.01"):
+        envs.PhysicsOptions(timestep=-0.01)
+    with pytest.raises(ValueError, match="timestep 0.003 does not divide the control time step 0.025"):
+        envs.make("walker-run", physics=envs.PhysicsOptions(timestep=0.003))
+
+
+def test_custom_timestep_keeps_control_time():
+    env = envs.make("walker-run", physics=envs.PhysicsOptions(timestep=0.005))
+    assert env.n_substeps == 5 and env.mj_model.opt.timestep == 0.005
+    assert envs.make("walker-run").n_substeps == 10 and envs.make("cartpole-swingup").n_substeps == 1
 
 
 @pytest.fixture(scope="module")

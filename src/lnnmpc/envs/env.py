@@ -70,6 +70,7 @@ class Env:
     ids: dict
     joints: dict
     kept: np.ndarray
+    n_substeps: int
 
     # ------------------------------------------------------------------------------------- shapes
     @property
@@ -136,7 +137,7 @@ class Env:
 
         def control(data, _):
             data = phys.control_step(
-                self.mjx_model, data, action, self.spec.n_substeps, self.spec.needs_velocity_sensors
+                self.mjx_model, data, action, self.n_substeps, self.spec.needs_velocity_sensors
             )
             return data, self.spec.reward(data, action, self.ids)
 
@@ -166,11 +167,15 @@ def make(task: str, *, physics: str | phys.PhysicsOptions = "fast", action_repea
     if isinstance(action_repeat, bool) or not isinstance(action_repeat, int | np.integer) or action_repeat < 1:
         raise ValueError(f"action_repeat must be an integer >= 1, got {action_repeat!r}")
     spec = TASKS[task]
-    options = phys.resolve_profile(physics)
+    options = phys.resolve_profile(physics, spec.domain)
     corruption = CorruptionConfig.from_options(obs_options)
     model = phys.load_model(spec.domain, options)
+    n_substeps = spec.n_substeps
+    if options.timestep is not None:
+        default_dt = phys.load_model(spec.domain, phys.PhysicsOptions()).opt.timestep
+        n_substeps = phys.substeps_per_control_step(spec.n_substeps, default_dt, options.timestep)
     return Env(
         spec=spec, action_repeat=int(action_repeat), physics_options=options, corruption=corruption,
         mj_model=model, mjx_model=phys.put_model(model), ids=model_ids(spec.domain, model),
-        joints=phys.joint_info(model), kept=kept_indices(spec.obs_keys, corruption),
+        joints=phys.joint_info(model), kept=kept_indices(spec.obs_keys, corruption), n_substeps=n_substeps,
     )

@@ -5,11 +5,17 @@ Two named profiles:
 * ``"exact"`` keeps dm_control's options: solver iterations, line search, integrator (RK4 for cartpole and
   acrobot, Euler for walker) and Euler damping. Only the energy flag is cleared: MJX cannot compute energy and
   none of these tasks reads it. With ``jax_enable_x64`` this steps like ``dm_control.suite.load`` to ~1e-10.
-* ``"fast"`` (the training default) only lowers the constraint solver's effort:
-  Newton ``iterations=1`` and ``ls_iterations=4`` (dm_control: 100 / 50). Newton converges in one or two steps on
-  these small problems and is warm-started from the previous step's accelerations, so trajectories stay within
-  float32 noise of ``exact`` over short horizons (see ``tests/test_env_fast.py``). Integrators, time steps and
-  contact geometry are unchanged, so the dynamics the agent learns are dm_control's.
+* ``"fast"`` (the training default) only lowers the constraint solver's effort; integrators, time steps and
+  contact geometry stay dm_control's, so the agent learns dm_control's dynamics:
+
+  - cartpole, acrobot: Newton ``iterations=1``, ``ls_iterations=4`` (dm_control: 100 / 50). Cartpole's only
+    constraint is the slider limit and acrobot has constraints disabled, so trajectories equal ``exact`` to
+    float32 round-off.
+  - walker: Newton ``iterations=4``, ``ls_iterations=4``. Matches ``exact`` to 1e-7 through the first ground
+    contacts and gives the same random-action returns. Weaker settings break the physics: 1 iteration blows up
+    (velocities grow without bound, NaN within ~100 agent steps of random actions), 2 / 4 gives unphysical
+    velocities (|qvel| > 200) and +25% random-action return; a 0.005 s time step moves positions by 0.05 after
+    one agent step. See ``tests/test_env_fast.py`` and ``benchmarks/results/``.
 
 Any other combination can be given as a :class:`PhysicsOptions`.
 """
@@ -28,6 +34,7 @@ from mujoco import mjx
 
 PROFILES = ("exact", "fast")
 INTEGRATORS = {"euler": mujoco.mjtIntegrator.mjINT_EULER, "rk4": mujoco.mjtIntegrator.mjINT_RK4}
+SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,40 +45,53 @@ class PhysicsOptions:
       iterations: constraint solver iterations (dm_control: 100).
       ls_iterations: line-search iterations (dm_control: 50).
       integrator: "euler" or "rk4".
+      solver: constraint solver, "newton" (dm_control's) or "cg".
       disable_eulerdamp: turn off implicit joint damping in the Euler integrator.
       max_contact_points: MJX cap on contacts kept per step (walker only has contacts).
+      timestep: physics time step in seconds; must divide dm_control's control time step (the number of
+        physics steps per control step is adjusted so that control time is unchanged).
     """
 
     iterations: int | None = None
     ls_iterations: int | None = None
     integrator: str | None = None
+    solver: str | None = None
     disable_eulerdamp: bool = False
     max_contact_points: int | None = None
+    timestep: float | None = None
 
     def __post_init__(self):
+        if self.timestep is not None and not (isinstance(self.timestep, float | int) and self.timestep > 0):
+            raise ValueError(f"PhysicsOptions.timestep must be a positive number of seconds, got {self.timestep!r}")
         for name in ("iterations", "ls_iterations", "max_contact_points"):
             value = getattr(self, name)
             if value is not None and (not isinstance(value, int) or value < 1):
                 raise ValueError(f"PhysicsOptions.{name} must be an int >= 1 or None, got {value!r}")
+        if self.solver is not None and self.solver not in SOLVERS:
+            raise ValueError(f"unknown solver {self.solver!r}; known: {', '.join(SOLVERS)}")
         if self.integrator is not None and self.integrator not in INTEGRATORS:
             raise ValueError(
                 f"unknown integrator {self.integrator!r}; known: {', '.join(INTEGRATORS)}"
             )
 
 
-NAMED_PROFILES = {
-    "exact": PhysicsOptions(),
-    "fast": PhysicsOptions(iterations=1, ls_iterations=4),
+# The "fast" profile per domain (see the module docstring for why each setting is safe).
+FAST_PROFILES = {
+    "cartpole": PhysicsOptions(iterations=1, ls_iterations=4),
+    "acrobot": PhysicsOptions(iterations=1, ls_iterations=4),
+    "walker": PhysicsOptions(iterations=4, ls_iterations=4),
 }
 
 
-def resolve_profile(physics: str | PhysicsOptions) -> PhysicsOptions:
-    """Turns a profile name or options object into :class:`PhysicsOptions`."""
+def resolve_profile(physics: str | PhysicsOptions, domain: str) -> PhysicsOptions:
+    """Turns a profile name ("exact", "fast") or an options object into :class:`PhysicsOptions` for ``domain``."""
     if isinstance(physics, PhysicsOptions):
         return physics
-    if physics not in NAMED_PROFILES:
-        raise ValueError(f"unknown physics profile {physics!r}; known: {', '.join(PROFILES)}")
-    return NAMED_PROFILES[physics]
+    if physics == "exact":
+        return PhysicsOptions()
+    if physics == "fast":
+        return FAST_PROFILES[domain]
+    raise ValueError(f"unknown physics profile {physics!r}; known: {', '.join(PROFILES)}")
 
 
 def _dm_control_xml(domain: str) -> tuple[str, dict[str, bytes]]:
@@ -113,11 +133,27 @@ def load_model(domain: str, options: PhysicsOptions) -> mujoco.MjModel:
         model.opt.iterations = options.iterations
     if options.ls_iterations is not None:
         model.opt.ls_iterations = options.ls_iterations
+    if options.timestep is not None:
+        model.opt.timestep = options.timestep
     if options.integrator is not None:
         model.opt.integrator = INTEGRATORS[options.integrator]
+    if options.solver is not None:
+        model.opt.solver = SOLVERS[options.solver]
     if options.disable_eulerdamp:
         model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_EULERDAMP)
     return model
+
+
+def substeps_per_control_step(dm_control_substeps: int, dm_control_timestep: float, timestep: float) -> int:
+    """Physics steps per control step when the physics time step changes (control time step unchanged)."""
+    control_dt = dm_control_substeps * dm_control_timestep
+    n = round(control_dt / timestep)
+    if n < 1 or abs(n * timestep - control_dt) > 1e-9:
+        raise ValueError(
+            f"timestep {timestep} does not divide the control time step {control_dt}; "
+            f"allowed: {control_dt}/k for integer k >= 1"
+        )
+    return n
 
 
 def put_model(model: mujoco.MjModel) -> mjx.Model:
