@@ -1,9 +1,12 @@
 """Forward+backward time and peak memory of CfC / LTC sequence unrolls, for 1 seed and several seeds under vmap.
 
 Defaults are the sizes of issue #3: a 42-step unroll, batch 256, input 30, hidden 64, CfC backbone 192 units
-(one layer), LTC fully connected with 6 ODE unfolds; 1 and 8 seeds. LTC variants: ``ltc`` (default cell:
-synaptic activations recomputed in the backward pass), ``ltc-remat`` (plus ``jax.checkpoint`` per time step),
-``ltc-stored`` (``recompute_synapses=False``: stores B*H*H activations per sub-step; ~40 GB at 8 seeds).
+(one layer), LTC fully connected with 6 ODE unfolds; 1 and 8 seeds. ``cfc`` is the default (fused) unroll:
+input projection hoisted out of the scan, one head matmul, custom VJP with hoisted weight gradients;
+``cfc-step`` scans ``CfCCell.apply`` step by step (the previous path). LTC variants: ``ltc`` (default: sensory
+currents of all steps computed before the scan, synaptic activations recomputed in the backward pass),
+``ltc-step`` (sensory currents per step, the previous path), ``ltc-remat`` (plus ``jax.checkpoint`` per time
+step), ``ltc-stored`` (``recompute_synapses=False``: stores B*H*H activations per sub-step; ~40 GB at 8 seeds).
 Each configuration runs in its own Python process so that the peak-memory counter of the device
 (``jax.devices()[0].memory_stats()['peak_bytes_in_use']``, None where the backend has no counter, e.g. CPU)
 belongs to that configuration alone. Compilation is excluded; each timing blocks until the result is ready.
@@ -29,6 +32,15 @@ SMALL_SIZES = {"length": 8, "batch": 16, "inputs": 6, "hidden": 8, "backbone_uni
 TARGETS_H100 = {"cfc_ms": 2.5, "ltc_ms": 15.0, "seeds_ratio": 1.6}
 RESET_PROBABILITY = 0.02
 MAX_DT = 2.0
+# variant: (cell kind, unroll(fused=...), unroll(remat=...), LTC recompute_synapses)
+VARIANTS = {
+    "cfc": ("cfc", True, False, None),
+    "cfc-step": ("cfc", False, False, None),
+    "ltc": ("ltc", True, False, True),
+    "ltc-step": ("ltc", False, False, True),
+    "ltc-remat": ("ltc", True, True, True),
+    "ltc-stored": ("ltc", True, False, False),
+}
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -37,10 +49,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=None,
                         help="JSON path (default benchmarks/results/cells-<device>.json)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 8], help="seed counts (1 = no vmap)")
-    parser.add_argument("--cells", nargs="+", default=["cfc", "ltc", "ltc-remat", "ltc-stored"],
-                        choices=["cfc", "ltc", "ltc-remat", "ltc-stored"],
-                        help="cell variants (ltc-remat: jax.checkpoint per step; ltc-stored: "
-                             "recompute_synapses=False, stores the B*H*H activations)")
+    parser.add_argument("--cells", nargs="+", default=["cfc", "cfc-step", "ltc", "ltc-step", "ltc-remat"],
+                        choices=list(VARIANTS),
+                        help="cell variants (*-step: unfused per-step unroll; ltc-remat: jax.checkpoint per "
+                             "step; ltc-stored: recompute_synapses=False, stores the B*H*H activations)")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls (default 50, small: 5)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed calls after compilation")
     parser.add_argument("--scan-unroll", type=int, default=1, help="time steps per lax.scan iteration")
@@ -51,9 +63,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def build_cell(variant: str, sizes: dict):
     from lnnmpc.nets import CfCCell, LTCCell
 
-    if variant == "cfc":
+    kind, _, _, recompute_synapses = VARIANTS[variant]
+    if kind == "cfc":
         return CfCCell(sizes["hidden"], backbone_units=sizes["backbone_units"], backbone_layers=1)
-    return LTCCell(sizes["hidden"], recompute_synapses=variant != "ltc-stored")
+    return LTCCell(sizes["hidden"], recompute_synapses=recompute_synapses)
 
 
 def make_batch(key, seeds: int, sizes: dict):
@@ -69,7 +82,7 @@ def make_batch(key, seeds: int, sizes: dict):
     return inputs, dts, resets
 
 
-def make_step_functions(cell, sizes: dict, seeds: int, remat: bool, scan_unroll: int):
+def make_step_functions(cell, sizes: dict, seeds: int, remat: bool, scan_unroll: int, fused: bool = True):
     """Jitted forward and forward+backward functions of (variables, inputs, dts, resets)."""
     import jax
     import jax.numpy as jnp
@@ -79,7 +92,8 @@ def make_step_functions(cell, sizes: dict, seeds: int, remat: bool, scan_unroll:
     h0 = cell.initial_state(sizes["batch"])
 
     def loss(variables, inputs, dts, resets):
-        result = unroll(cell, variables, h0, inputs, dts, resets, remat=remat, scan_unroll=scan_unroll)
+        result = unroll(cell, variables, h0, inputs, dts, resets, remat=remat, scan_unroll=scan_unroll,
+                        fused=fused)
         return jnp.mean(result.states**2) + jnp.mean(result.outputs)
 
     forward_backward = jax.value_and_grad(loss)
@@ -128,7 +142,8 @@ def run_worker(spec: dict) -> dict:
     else:
         variables = cell.init(key_init, *example)
     arguments = (variables, inputs, dts, resets)
-    forward, forward_backward = make_step_functions(cell, sizes, seeds, remat=variant == "ltc-remat",
+    _, fused, remat, _ = VARIANTS[variant]
+    forward, forward_backward = make_step_functions(cell, sizes, seeds, remat=remat, fused=fused,
                                                     scan_unroll=spec["scan_unroll"])
     start = time.perf_counter()
     jax.block_until_ready(forward_backward(*arguments))
@@ -200,6 +215,8 @@ def main(argv: list[str] | None = None) -> None:
         "versions": {"jax": jax.__version__, "flax": flax.__version__, "python": platform.python_version()},
         "config": {**sizes, "small": args.small, "repeats": repeats, "warmup": args.warmup,
                    "scan_unroll": args.scan_unroll,
+                   "variants": {name: dict(zip(("cell", "fused", "remat", "recompute_synapses"), spec, strict=True))
+                                for name, spec in VARIANTS.items() if name in args.cells},
                    "cfc": "mode=default, 1 backbone layer, lecun_tanh", "ltc": "FullyConnected, 6 unfolds, softplus",
                    "dt": f"U(0, {MAX_DT}) per sample", "reset_probability": RESET_PROBABILITY,
                    "loss": "mean(states^2) + mean(outputs); gradients w.r.t. parameters", "dtype": "float32"},

@@ -245,7 +245,7 @@ def test_backbone_dropout_is_active_only_after_layer_two_and_with_an_rng():
     one_layer = CfCCell(HIDDEN, backbone_units=10, backbone_layers=1, backbone_dropout=0.5)
     variables = init_cell(one_layer)
     np.testing.assert_array_equal(unroll(one_layer, variables, h0, inputs, dts, dropout_rng=key).states,
-                                  unroll(one_layer, variables, h0, inputs, dts).states)
+                                  unroll(one_layer, variables, h0, inputs, dts, fused=False).states)
 
 
 def test_cfc_initialisation_follows_torch_ranges():
@@ -306,3 +306,33 @@ def test_bad_configs_raise_value_error_naming_the_value(factory, bad_value, allo
     with pytest.raises(ValueError, match=bad_value) as error:
         factory()
     assert re.search(allowed, str(error.value))
+
+
+FUSED_CASES = {
+    **CELLS,
+    "cfc_pure_no_backbone": CfCCell(HIDDEN, mode="pure", backbone_layers=0),
+    "cfc_default_3_layers_silu": CfCCell(HIDDEN, backbone_units=7, backbone_layers=3, backbone_activation="silu"),
+}
+
+
+@pytest.mark.parametrize("name", FUSED_CASES)
+def test_fused_unroll_matches_step_by_step_values_and_gradients(name):
+    cell = FUSED_CASES[name]
+    variables = init_cell(cell)
+    inputs, dts, h0 = random_sequence(12)
+    resets = jax.random.bernoulli(jax.random.PRNGKey(5), 0.2, (12, BATCH)).at[0, 0].set(True)
+    reset_state = 0.3 * jnp.ones((BATCH, HIDDEN))
+
+    def loss(fused, variables, h0, xs, dts, reset_state):
+        result = unroll(cell, variables, h0, xs, dts, resets, reset_state=reset_state, fused=fused)
+        return jnp.mean(result.states**2) + jnp.mean(result.outputs * jnp.arange(result.outputs.shape[-1]))
+
+    arguments = (variables, h0, inputs, dts, reset_state)
+    grad = jax.value_and_grad(loss, argnums=(1, 2, 3, 4, 5))
+    fused_loss, fused_grads = jax.jit(functools.partial(grad, True))(*arguments)
+    step_loss, step_grads = jax.jit(functools.partial(grad, False))(*arguments)
+    np.testing.assert_allclose(fused_loss, step_loss, rtol=1e-6)
+    for fused, step in zip(jax.tree.leaves(fused_grads), jax.tree.leaves(step_grads), strict=True):
+        np.testing.assert_allclose(fused, step, atol=1e-6, rtol=1e-5)
+    np.testing.assert_allclose(unroll(cell, variables, h0, inputs, dts, resets, fused=True).states,
+                               unroll(cell, variables, h0, inputs, dts, resets, fused=False).states, atol=1e-6)

@@ -122,23 +122,33 @@ class CfCCell(ZeroInitialState, nn.Module):
         batch_size = inputs.shape[0]
         dt = as_time_delta(dt, batch_size, jnp.result_type(inputs, state))
         features = self._backbone(jnp.concatenate([inputs, state], axis=-1), deterministic)
-        ff1 = self._head("ff1", features)
+        heads = {name: self._head(name, features) for name in cfc_head_names(self.mode)}
+        extra = ()
         if self.mode == "pure":
-            new_state = self._pure_update(ff1, dt)
-        else:
-            ff1 = jnp.tanh(ff1)
-            ff2 = jnp.tanh(self._head("ff2", features))
-            gate = jax.nn.sigmoid(self._head("time_a", features) * dt + self._head("time_b", features))
-            if self.mode == "no_gate":
-                new_state = ff1 + gate * ff2
-            else:
-                new_state = ff1 * (1.0 - gate) + gate * ff2
+            shape = (1, self.hidden_size)
+            extra = tuple(self.param(name, nn.initializers.xavier_uniform(), shape, self.param_dtype)
+                          for name in ("w_tau", "A"))
+        new_state = cfc_update(self.mode, tuple(heads.values()), dt, extra)
         return new_state, new_state
 
-    def _pure_update(self, ff1: jax.Array, dt: jax.Array) -> jax.Array:
-        """Closed-form solution without gate (ncps ``mode='pure'``, the paper's Cf-S)."""
-        shape = (1, self.hidden_size)
-        w_tau = self.param("w_tau", nn.initializers.xavier_uniform(), shape, self.param_dtype)
-        amplitude = self.param("A", nn.initializers.xavier_uniform(), shape, self.param_dtype)
+
+def cfc_head_names(mode: str) -> tuple[str, ...]:
+    """Names of the affine heads a CfC of ``mode`` has, in the order :func:`cfc_update` takes them."""
+    return ("ff1",) if mode == "pure" else ("ff1", "ff2", "time_a", "time_b")
+
+
+def cfc_update(mode: str, heads: tuple[jax.Array, ...], dt: jax.Array, extra: tuple[jax.Array, ...]) -> jax.Array:
+    """New CfC state from the head outputs (each (B, H), order of :func:`cfc_head_names`) and ``dt`` (B, 1).
+
+    ``extra`` is ``(w_tau, A)`` (each (1, H)) for ``mode='pure'`` (the paper's Cf-S) and ``()`` otherwise.
+    """
+    if mode == "pure":
+        (ff1,), (w_tau, amplitude) = heads, extra
         decay = jnp.exp(-dt * (jnp.abs(w_tau) + jnp.abs(ff1)))
         return amplitude - amplitude * decay * ff1
+    ff1, ff2, time_a, time_b = heads
+    ff1, ff2 = jnp.tanh(ff1), jnp.tanh(ff2)
+    gate = jax.nn.sigmoid(time_a * dt + time_b)
+    if mode == "no_gate":
+        return ff1 + gate * ff2
+    return ff1 * (1.0 - gate) + gate * ff2

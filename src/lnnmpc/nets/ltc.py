@@ -130,52 +130,80 @@ class LTCCell(ZeroInitialState, nn.Module):
         """Size M of the per-step output: the number of (motor) neurons read out."""
         return self.hidden_size if self.output_size is None else self.output_size
 
-    def _positive(self, value: jax.Array) -> jax.Array:
-        return jax.nn.softplus(value) if self.implicit_param_constraints else value
-
     def _ranged(self, name: str, shape: tuple[int, ...]) -> jax.Array:
         return self.param(name, uniform_range(*LTC_INIT_RANGES[name]), shape, self.param_dtype)
 
-    def _affine(self, prefix: str, mapping: str, values: jax.Array) -> jax.Array:
-        """Elementwise input/output mapping ``w * values (+ b)`` over the last axis."""
-        size = values.shape[-1]
+    def _mapping_params(self, prefix: str, mapping: str, size: int) -> dict[str, jax.Array]:
+        params = {}
         if mapping in ("affine", "linear"):
-            values = values * self.param(f"{prefix}_w", nn.initializers.ones, (size,), self.param_dtype)
+            params[f"{prefix}_w"] = self.param(f"{prefix}_w", nn.initializers.ones, (size,), self.param_dtype)
         if mapping == "affine":
-            values = values + self.param(f"{prefix}_b", nn.initializers.zeros, (size,), self.param_dtype)
-        return values
+            params[f"{prefix}_b"] = self.param(f"{prefix}_b", nn.initializers.zeros, (size,), self.param_dtype)
+        return params
 
     @nn.compact
     def __call__(self, state: jax.Array, inputs: jax.Array, dt: Any = 1.0) -> tuple[jax.Array, jax.Array]:
         """Integrate over elapsed time ``dt``; returns ``(new_state (B, H), output (B, M))``."""
         hidden, n_inputs = self.hidden_size, inputs.shape[-1]
         erev_init, sensory_erev_init = fully_connected_polarities(hidden, n_inputs, self.erev_init_seed)
-        gleak = self._positive(self._ranged("gleak", (hidden,)))
-        vleak = self._ranged("vleak", (hidden,))
-        cm = self._positive(self._ranged("cm", (hidden,)))
-        sigma = self._ranged("sigma", (hidden, hidden))
-        mu = self._ranged("mu", (hidden, hidden))
-        w = self._positive(self._ranged("w", (hidden, hidden)))
-        erev = self.param("erev", constant_array(erev_init), (hidden, hidden), self.param_dtype)
-        sensory_synapses = (
-            self._positive(self._ranged("sensory_w", (n_inputs, hidden))),
-            self._ranged("sensory_sigma", (n_inputs, hidden)),
-            self._ranged("sensory_mu", (n_inputs, hidden)),
-            self.param("sensory_erev", constant_array(sensory_erev_init), (n_inputs, hidden), self.param_dtype),
-        )
-        currents = jax.checkpoint(synaptic_currents) if self.recompute_synapses else synaptic_currents
-        mapped = self._affine("input", self.input_mapping, inputs)
-        sensory_num, sensory_den = currents(mapped, *sensory_synapses)
-        drive = gleak * vleak + sensory_num
-        conductance = gleak + sensory_den + self.epsilon
-        sub_step = as_time_delta(dt, inputs.shape[0], jnp.result_type(inputs, state)) / self.ode_unfolds
-        new_state = state
-        for _ in range(self.ode_unfolds):
-            recurrent_num, recurrent_den = currents(new_state, w, sigma, mu, erev)
-            new_state = semi_implicit_euler_step(new_state, cm, drive + recurrent_num,
-                                                 conductance + recurrent_den, sub_step)
-        output = self._affine("output", self.output_mapping, new_state[:, : self.readout_size])
-        return new_state, output
+        params = {name: self._ranged(name, (hidden,)) for name in ("gleak", "vleak", "cm")}
+        params.update({name: self._ranged(name, (hidden, hidden)) for name in ("sigma", "mu", "w")})
+        params["erev"] = self.param("erev", constant_array(erev_init), (hidden, hidden), self.param_dtype)
+        params.update({name: self._ranged(name, (n_inputs, hidden))
+                       for name in ("sensory_w", "sensory_sigma", "sensory_mu")})
+        params["sensory_erev"] = self.param("sensory_erev", constant_array(sensory_erev_init),
+                                            (n_inputs, hidden), self.param_dtype)
+        params.update(self._mapping_params("input", self.input_mapping, n_inputs))
+        params.update(self._mapping_params("output", self.output_mapping, self.readout_size))
+        drive, conductance = ltc_sensory_drive(self, params, inputs)
+        return ltc_integrate(self, params, state, drive, conductance, dt)
+
+
+def _positive(cell: LTCCell, value: jax.Array) -> jax.Array:
+    return jax.nn.softplus(value) if cell.implicit_param_constraints else value
+
+
+def _affine(params: Any, prefix: str, values: jax.Array) -> jax.Array:
+    """Elementwise input/output mapping ``w * values (+ b)`` over the last axis (absent parameters skipped)."""
+    if f"{prefix}_w" in params:
+        values = values * params[f"{prefix}_w"]
+    if f"{prefix}_b" in params:
+        values = values + params[f"{prefix}_b"]
+    return values
+
+
+def ltc_sensory_drive(cell: LTCCell, params: Any, inputs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Input-dependent part of the ODE: ``(gleak * vleak + sensory numerator, gleak + sensory den. + eps)``.
+
+    ``params`` is the cell's ``'params'`` collection; ``inputs`` (..., B, S), e.g. a whole sequence (T, B, S)
+    at once; returns two (..., B, H) arrays. They do not depend on the state, so :func:`lnnmpc.nets.unroll`
+    computes them for all steps before the scan.
+    """
+    gleak = _positive(cell, params["gleak"])
+    synapses = (_positive(cell, params["sensory_w"]), params["sensory_sigma"], params["sensory_mu"],
+                params["sensory_erev"])
+    currents = jax.checkpoint(synaptic_currents) if cell.recompute_synapses else synaptic_currents
+    sensory_num, sensory_den = currents(_affine(params, "input", inputs), *synapses)
+    return gleak * params["vleak"] + sensory_num, gleak + sensory_den + cell.epsilon
+
+
+def ltc_integrate(
+    cell: LTCCell, params: Any, state: jax.Array, drive: jax.Array, conductance: jax.Array, dt: Any
+) -> tuple[jax.Array, jax.Array]:
+    """The ``ode_unfolds`` Euler sub-steps from ``state`` (B, H) given :func:`ltc_sensory_drive`'s (B, H) pair.
+
+    ``dt`` scalar, (B,) or (B, 1). Returns ``(new_state (B, H), output (B, M))``.
+    """
+    cm = _positive(cell, params["cm"])
+    synapses = (_positive(cell, params["w"]), params["sigma"], params["mu"], params["erev"])
+    currents = jax.checkpoint(synaptic_currents) if cell.recompute_synapses else synaptic_currents
+    sub_step = as_time_delta(dt, state.shape[0], jnp.result_type(drive, state)) / cell.ode_unfolds
+    new_state = state
+    for _ in range(cell.ode_unfolds):
+        recurrent_num, recurrent_den = currents(new_state, *synapses)
+        new_state = semi_implicit_euler_step(new_state, cm, drive + recurrent_num, conductance + recurrent_den,
+                                             sub_step)
+    return new_state, _affine(params, "output", new_state[:, : cell.readout_size])
 
 
 def synaptic_currents(
@@ -183,12 +211,12 @@ def synaptic_currents(
 ) -> tuple[jax.Array, jax.Array]:
     """Summed synaptic drive and conductance onto each target neuron.
 
-    ``presynaptic`` (B, N); ``weight, sigma, mu, erev`` (N, H). Activation
-    ``a = weight * sigmoid(sigma * (presynaptic[:, :, None] - mu))`` (B, N, H); returns
-    ``(sum_N a * erev, sum_N a)``, both (B, H).
+    ``presynaptic`` (..., B, N); ``weight, sigma, mu, erev`` (N, H). Activation
+    ``a = weight * sigmoid(sigma * (presynaptic[..., :, None] - mu))`` (..., B, N, H); returns
+    ``(sum_N a * erev, sum_N a)``, both (..., B, H).
     """
-    activation = weight * jax.nn.sigmoid(sigma * (presynaptic[:, :, None] - mu))
-    return jnp.sum(activation * erev, axis=1), jnp.sum(activation, axis=1)
+    activation = weight * jax.nn.sigmoid(sigma * (presynaptic[..., :, None] - mu))
+    return jnp.sum(activation * erev, axis=-2), jnp.sum(activation, axis=-2)
 
 
 def semi_implicit_euler_step(

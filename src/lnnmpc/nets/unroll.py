@@ -15,6 +15,10 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from lnnmpc.nets.cfc import CfCCell
+from lnnmpc.nets.cfc_fused import cfc_fused_unroll
+from lnnmpc.nets.ltc import LTCCell, ltc_integrate, ltc_sensory_drive
+
 
 class UnrollResult(NamedTuple):
     """Outputs of :func:`unroll`: ``states`` (T, B, H) after each step; ``outputs`` (T, B, O) per step."""
@@ -39,6 +43,22 @@ def time_deltas_for_sequence(dts: Any, length: int, batch_size: int, dtype: Any)
                      f"({length}, {batch_size}, 1)")
 
 
+def _full_reset_state(reset_state: Any, initial_state: jax.Array) -> jax.Array:
+    """``reset_state`` (None = zeros) broadcast to the (B, H) shape and dtype of ``initial_state``."""
+    if reset_state is None:
+        return jnp.zeros_like(initial_state)
+    return jnp.broadcast_to(jnp.asarray(reset_state, initial_state.dtype), initial_state.shape)
+
+
+def _checked_resets(resets: Any, length: int, batch_size: int) -> jax.Array:
+    """Reset flags as a (T, B) bool array (None = no resets); ``ValueError`` on another shape."""
+    shape = (length, batch_size)
+    resets = jnp.zeros(shape, dtype=bool) if resets is None else jnp.asarray(resets, dtype=bool)
+    if resets.shape != shape:
+        raise ValueError(f"resets of shape {resets.shape} do not match the sequence's (T, B) = {shape}")
+    return resets
+
+
 def scan_steps(
     step: Callable[[jax.Array, Any, jax.Array], tuple[jax.Array, jax.Array]],
     initial_state: jax.Array,
@@ -59,13 +79,8 @@ def scan_steps(
     otherwise keeps several B * H^2 tensors per sub-step).
     ``scan_unroll`` is passed to ``jax.lax.scan(unroll=...)`` (steps per loop iteration; a speed knob only).
     """
-    shape = (dts.shape[0], initial_state.shape[0])
-    if reset_state is None:
-        reset_state = jnp.zeros_like(initial_state)
-    reset_state = jnp.broadcast_to(jnp.asarray(reset_state, initial_state.dtype), initial_state.shape)
-    resets = jnp.zeros(shape, dtype=bool) if resets is None else jnp.asarray(resets, dtype=bool)
-    if resets.shape != shape:
-        raise ValueError(f"resets of shape {resets.shape} do not match the sequence's (T, B) = {shape}")
+    reset_state = _full_reset_state(reset_state, initial_state)
+    resets = _checked_resets(resets, dts.shape[0], initial_state.shape[0])
     body_step = jax.checkpoint(step) if remat else step
 
     def body(state, per_step):
@@ -90,6 +105,7 @@ def unroll(
     remat: bool = False,
     dropout_rng: jax.Array | None = None,
     scan_unroll: int = 1,
+    fused: bool = True,
 ) -> UnrollResult:
     """Run ``cell`` (a :class:`CfCCell` or :class:`LTCCell`) with ``variables`` over a time-major sequence.
 
@@ -104,6 +120,10 @@ def unroll(
         remat: rematerialise each step in the backward pass (``jax.checkpoint``).
         dropout_rng: enables CfC backbone dropout (training mode) with a fresh key per step.
         scan_unroll: time steps per ``lax.scan`` loop iteration (same results; may be faster on GPU).
+        fused: use the sequence-level fast paths (same values up to float32 round-off): a CfC without dropout
+            runs :func:`~lnnmpc.nets.cfc_fused.cfc_fused_unroll` (``remat`` does not apply: it stores only
+            (T, B, U) residuals); an LTC computes its sensory currents for all steps before
+            the scan. ``False`` scans ``cell.apply`` step by step.
 
     Returns:
         ``UnrollResult(states (T, B, H), outputs (T, B, O))``; ``states[-1]`` is the final state.
@@ -112,6 +132,20 @@ def unroll(
     length, batch_size = inputs.shape[:2]
     dts = time_deltas_for_sequence(dts, length, batch_size, jnp.result_type(inputs, initial_state))
     options = {"reset_state": reset_state, "remat": remat, "scan_unroll": scan_unroll}
+    if fused and dropout_rng is None and isinstance(cell, CfCCell):
+        resets = _checked_resets(resets, length, batch_size)
+        reset_state = _full_reset_state(reset_state, initial_state)
+        states = cfc_fused_unroll(cell, variables["params"], initial_state, inputs, dts, resets, reset_state,
+                                  scan_unroll)
+        return UnrollResult(states, states)
+    if fused and isinstance(cell, LTCCell):
+        params = variables["params"]
+        drive, conductance = ltc_sensory_drive(cell, params, inputs)
+
+        def ltc_step(state, drive_and_conductance, dt):
+            return ltc_integrate(cell, params, state, *drive_and_conductance, dt)
+
+        return scan_steps(ltc_step, initial_state, (drive, conductance), dts, resets, **options)
     if dropout_rng is None:
         def step(state, x, dt):
             return cell.apply(variables, state, x, dt)
