@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test lint fmt bench clean
+.PHONY: install test lint fmt bench bench-env bench-cells clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,6 +19,15 @@ lint: $(STAMP)
 
 test: lint
 	$(VENV)/bin/pytest -q tests
+
+# Benchmarks write JSON under benchmarks/results/ (meant for a GPU; see benchmarks/results/README.md).
+bench-env: $(STAMP)
+	$(PY) benchmarks/env_throughput.py
+
+bench-cells: $(STAMP)
+	$(PY) benchmarks/cells.py
+
+bench: bench-env bench-cells
 
 fmt: $(STAMP)
 	$(VENV)/bin/ruff check --fix src tests benchmarks experiments

@@ -152,7 +152,8 @@ def test_env_corruptions_under_jit_and_vmap(combined_env):
 def test_same_physics_different_corruption_seeds(combined_env):
     """Two keys that share the physics seed still get independent corruptions (noise drawn per env key)."""
     env, _ = combined_env
-    state_a = env.reset_to(jnp.array([0.0, 3.0]), jnp.zeros(2), jax.random.key(1))
-    state_b = env.reset_to(jnp.array([0.0, 3.0]), jnp.zeros(2), jax.random.key(2))
+    reset_to = jax.jit(env.reset_to)
+    state_a = reset_to(jnp.array([0.0, 3.0]), jnp.zeros(2), jax.random.key(1))
+    state_b = reset_to(jnp.array([0.0, 3.0]), jnp.zeros(2), jax.random.key(2))
     np.testing.assert_array_equal(np.asarray(state_a.clean_obs), np.asarray(state_b.clean_obs))
     assert not np.allclose(np.asarray(state_a.obs), np.asarray(state_b.obs))
