@@ -1,6 +1,6 @@
-"""Prints a Markdown table of the medians in benchmarks/results/*.json (env throughput and cells).
+"""Prints a Markdown table of the medians in benchmarks/results/*.json and plots environment throughput.
 
-    python benchmarks/summarize.py > benchmarks/results/SUMMARY.md
+    python benchmarks/summarize.py > benchmarks/results/SUMMARY.md   # also writes env_throughput.png there
 """
 
 from __future__ import annotations
@@ -15,6 +15,47 @@ RESULTS = os.path.join(os.path.dirname(__file__), "results")
 def _options(record: dict) -> str:
     options = {k: v for k, v in record.get("physics_options", {}).items() if v not in (None, False)}
     return ", ".join(f"{k}={v}" for k, v in options.items()) or "dm_control"
+
+
+def plot_env_throughput(path: str) -> None:
+    """ms per agent step versus batch, one line per (domain, solver setting), log-log."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    lines: dict[tuple[str, str], dict[int, float]] = {}
+    for file in sorted(glob.glob(os.path.join(RESULTS, "*.json"))):
+        with open(file) as f:
+            payload = json.load(f)
+        if payload.get("benchmark") != "env_throughput" or "command_buffer" in payload["env"].get("xla_flags", ""):
+            continue
+        for r in payload["results"]:
+            options = r.get("physics_options", {})
+            label = "exact" if not any(v not in (None, False) for v in options.values()) else (
+                f"Newton {options.get('iterations')}/{options.get('ls_iterations')}"
+                + (" no eulerdamp" if options.get("disable_eulerdamp") else "")
+                + (f" contacts<={options['max_contact_points']}" if options.get("max_contact_points") else "")
+            )
+            lines.setdefault((r["domain"], label), {})[r["batch"]] = r["ms_per_agent_step"]
+    from lnnmpc.envs.physics import FAST_PROFILES
+
+    fig, ax = plt.subplots(figsize=(9, 6))
+    colors = plt.get_cmap("tab20").colors
+    for i, ((domain, label), points) in enumerate(sorted(lines.items())):
+        batches = sorted(points)
+        fast = FAST_PROFILES[domain]
+        is_default = label == f"Newton {fast.iterations}/{fast.ls_iterations}"
+        style = "-" if domain == "walker" else "--" if domain == "cartpole" else ":"
+        ax.plot(batches, [points[b] for b in batches], style, marker="o", color=colors[i % len(colors)],
+                linewidth=3 if is_default else 1.2,
+                label=f"{domain}: {label}" + (" (fast default)" if is_default else ""))
+    ax.set(xscale="log", yscale="log", xlabel="environments (vmap batch)", ylabel="ms per agent step",
+           title="MJX environment step cost on one H100 (action repeat 2)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
 
 
 def main() -> None:
@@ -48,6 +89,8 @@ def main() -> None:
     print("| variant | seeds (vmap) | fwd+bwd ms | fwd ms | peak MiB | device | file |")
     print("|---|---|---|---|---|---|---|")
     print("\n".join(cell_rows))
+    plot_env_throughput(os.path.join(RESULTS, "env_throughput.png"))
+    print("\n![env throughput](env_throughput.png)")
 
 
 if __name__ == "__main__":
