@@ -10,6 +10,7 @@ Batch with ``jax.vmap`` (environments, or seeds × environments with two vmaps).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 
 import jax
@@ -27,6 +28,7 @@ from lnnmpc.envs.corruptions import (
     corruption_step,
     kept_indices,
 )
+from lnnmpc.envs.solver import unrolled_solver
 from lnnmpc.envs.tasks import TASKS, TaskSpec, model_ids
 
 
@@ -91,6 +93,9 @@ class Env:
         return -(-self.spec.control_steps // self.action_repeat)
 
     # -------------------------------------------------------------------------------- internals
+    def _solver_context(self):
+        return unrolled_solver() if self.physics_options.unrolled_solver else contextlib.nullcontext()
+
     def _clean_obs(self, data: mjx.Data) -> jax.Array:
         return jnp.concatenate([value for _, value in self.spec.observe(data, self.ids)])
 
@@ -123,7 +128,8 @@ class Env:
                 f"got {jnp.shape(qpos)} and {jnp.shape(qvel)}"
             )
         key = jax.random.key(0) if key is None else key
-        data = phys.data_from_state(self.mjx_model, qpos, qvel)
+        with self._solver_context():
+            data = phys.data_from_state(self.mjx_model, qpos, qvel)
         return self._start(data, key)
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
@@ -141,7 +147,8 @@ class Env:
             )
             return data, self.spec.reward(data, action, self.ids)
 
-        data, rewards = jax.lax.scan(control, state.physics, None, length=self.action_repeat)
+        with self._solver_context():
+            data, rewards = jax.lax.scan(control, state.physics, None, length=self.action_repeat)
         t = state.t + 1
         clean = self._clean_obs(data)
         key, k_obs = jax.random.split(state.key)

@@ -50,6 +50,9 @@ class PhysicsOptions:
       max_contact_points: MJX cap on contacts kept per step (walker only has contacts).
       timestep: physics time step in seconds; must divide dm_control's control time step (the number of
         physics steps per control step is adjusted so that control time is unchanged).
+      unrolled_solver: run the solver's iterations as straight-line code instead of MJX's ``while_loop``
+        (same iterates, no per-iteration host round trip; see :mod:`lnnmpc.envs.solver`). Meant for few
+        iterations: compile time grows with ``iterations``.
     """
 
     iterations: int | None = None
@@ -59,6 +62,7 @@ class PhysicsOptions:
     disable_eulerdamp: bool = False
     max_contact_points: int | None = None
     timestep: float | None = None
+    unrolled_solver: bool = False
 
     def __post_init__(self):
         if self.timestep is not None and not (isinstance(self.timestep, float | int) and self.timestep > 0):
@@ -77,9 +81,9 @@ class PhysicsOptions:
 
 # The "fast" profile per domain (see the module docstring for why each setting is safe).
 FAST_PROFILES = {
-    "cartpole": PhysicsOptions(iterations=1, ls_iterations=4),
-    "acrobot": PhysicsOptions(iterations=1, ls_iterations=4),
-    "walker": PhysicsOptions(iterations=4, ls_iterations=4),
+    "cartpole": PhysicsOptions(iterations=2, ls_iterations=2, unrolled_solver=True),
+    "acrobot": PhysicsOptions(iterations=1, ls_iterations=4, unrolled_solver=True),
+    "walker": PhysicsOptions(iterations=4, ls_iterations=4, unrolled_solver=True),
 }
 
 
