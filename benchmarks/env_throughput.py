@@ -36,6 +36,9 @@ WALKER_SWEEP = {
     "it4-ls4": envs.PhysicsOptions(iterations=4, ls_iterations=4),
     "it3-ls4": envs.PhysicsOptions(iterations=3, ls_iterations=4),
     "cg-it8-ls8": envs.PhysicsOptions(solver="cg", iterations=8, ls_iterations=8),
+    "unrolled-it4-ls4": envs.PhysicsOptions(iterations=4, ls_iterations=4, unrolled_solver=True),
+    "unrolled-it3-ls4": envs.PhysicsOptions(iterations=3, ls_iterations=4, unrolled_solver=True),
+    "unrolled-it4-ls2": envs.PhysicsOptions(iterations=4, ls_iterations=2, unrolled_solver=True),
 }
 
 
