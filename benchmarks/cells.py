@@ -3,10 +3,15 @@
 Defaults are the sizes of issue #3: a 42-step unroll, batch 256, input 30, hidden 64, CfC backbone 192 units
 (one layer), LTC fully connected with 6 ODE unfolds; 1 and 8 seeds. ``cfc`` is the default (fused) unroll:
 input projection hoisted out of the scan, one head matmul, custom VJP with hoisted weight gradients;
-``cfc-step`` scans ``CfCCell.apply`` step by step (the previous path). LTC variants: ``ltc`` (default: sensory
-currents of all steps computed before the scan, synaptic activations recomputed in the backward pass),
+``cfc-step`` scans ``CfCCell.apply`` step by step (the previous path). LTC variants: ``ltc`` (sensory
+currents of all steps computed before the scan, JAX autodiff of the sub-steps with the synaptic activations
+recomputed in the backward pass: ``LTCCell(manual_backward=False)``),
 ``ltc-step`` (sensory currents per step, the previous path), ``ltc-remat`` (plus ``jax.checkpoint`` per time
-step), ``ltc-stored`` (``recompute_synapses=False``: stores B*H*H activations per sub-step; ~40 GB at 8 seeds).
+step), ``ltc-stored`` (``recompute_synapses=False``: stores B*H*H activations per sub-step; ~40 GB at 8 seeds),
+``ltc-vjp`` (``LTCCell(manual_backward=True)``, the default cell: hand-derived backward that recomputes the
+synaptic sigmoids inside fused reductions and writes no B*H*H tensor). ``*-unrollN`` variants
+(``cfc-unroll2``, ``ltc-unroll2``, ``ltc-vjp-unroll2``, ...) use ``lax.scan(unroll=N)`` whatever
+``--scan-unroll`` says, so one run compares them.
 Each configuration runs in its own Python process so that the peak-memory counter of the device
 (``jax.devices()[0].memory_stats()['peak_bytes_in_use']``, None where the backend has no counter, e.g. CPU)
 belongs to that configuration alone. Compilation is excluded; each timing blocks until the result is ready.
@@ -32,14 +37,21 @@ SMALL_SIZES = {"length": 8, "batch": 16, "inputs": 6, "hidden": 8, "backbone_uni
 TARGETS_H100 = {"cfc_ms": 2.5, "ltc_ms": 15.0, "seeds_ratio": 1.6}
 RESET_PROBABILITY = 0.02
 MAX_DT = 2.0
-# variant: (cell kind, unroll(fused=...), unroll(remat=...), LTC recompute_synapses)
+# variant: (cell kind, unroll(fused=...), unroll(remat=...), LTC recompute_synapses, LTC manual_backward,
+#          lax.scan unroll or None for --scan-unroll)
+VARIANT_FIELDS = ("cell", "fused", "remat", "recompute_synapses", "manual_backward", "scan_unroll")
 VARIANTS = {
-    "cfc": ("cfc", True, False, None),
-    "cfc-step": ("cfc", False, False, None),
-    "ltc": ("ltc", True, False, True),
-    "ltc-step": ("ltc", False, False, True),
-    "ltc-remat": ("ltc", True, True, True),
-    "ltc-stored": ("ltc", True, False, False),
+    "cfc": ("cfc", True, False, None, None, None),
+    "cfc-unroll2": ("cfc", True, False, None, None, 2),
+    "cfc-unroll4": ("cfc", True, False, None, None, 4),
+    "cfc-step": ("cfc", False, False, None, None, None),
+    "ltc": ("ltc", True, False, True, False, None),
+    "ltc-vjp": ("ltc", True, False, True, True, None),
+    "ltc-vjp-unroll2": ("ltc", True, False, True, True, 2),
+    "ltc-unroll2": ("ltc", True, False, True, False, 2),
+    "ltc-step": ("ltc", False, False, True, False, None),
+    "ltc-remat": ("ltc", True, True, True, False, None),
+    "ltc-stored": ("ltc", True, False, False, False, None),
 }
 
 
@@ -49,13 +61,16 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--out", type=Path, default=None,
                         help="JSON path (default benchmarks/results/cells-<device>.json)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 8], help="seed counts (1 = no vmap)")
-    parser.add_argument("--cells", nargs="+", default=["cfc", "cfc-step", "ltc", "ltc-step", "ltc-remat"],
+    parser.add_argument("--cells", nargs="+", default=["cfc", "cfc-step", "ltc", "ltc-vjp", "ltc-step", "ltc-remat"],
                         choices=list(VARIANTS),
                         help="cell variants (*-step: unfused per-step unroll; ltc-remat: jax.checkpoint per "
-                             "step; ltc-stored: recompute_synapses=False, stores the B*H*H activations)")
+                             "step; ltc-stored: recompute_synapses=False, stores the B*H*H activations; "
+                             "ltc-vjp: LTCCell(manual_backward=True), hand-derived fused backward; "
+                             "*-unrollN: lax.scan unroll=N regardless of --scan-unroll)")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls (default 50, small: 5)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed calls after compilation")
-    parser.add_argument("--scan-unroll", type=int, default=1, help="time steps per lax.scan iteration")
+    parser.add_argument("--scan-unroll", type=int, default=1,
+                        help="time steps per lax.scan iteration (variants named *-unrollN use N instead)")
     parser.add_argument("--worker", type=str, default=None, help=argparse.SUPPRESS)
     return parser.parse_args(argv)
 
@@ -63,10 +78,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def build_cell(variant: str, sizes: dict):
     from lnnmpc.nets import CfCCell, LTCCell
 
-    kind, _, _, recompute_synapses = VARIANTS[variant]
+    kind, _, _, recompute_synapses, manual_backward, _ = VARIANTS[variant]
     if kind == "cfc":
         return CfCCell(sizes["hidden"], backbone_units=sizes["backbone_units"], backbone_layers=1)
-    return LTCCell(sizes["hidden"], recompute_synapses=recompute_synapses)
+    return LTCCell(sizes["hidden"], recompute_synapses=recompute_synapses, manual_backward=manual_backward)
 
 
 def make_batch(key, seeds: int, sizes: dict):
@@ -142,9 +157,10 @@ def run_worker(spec: dict) -> dict:
     else:
         variables = cell.init(key_init, *example)
     arguments = (variables, inputs, dts, resets)
-    _, fused, remat, _ = VARIANTS[variant]
+    _, fused, remat, _, _, scan_unroll = VARIANTS[variant]
+    scan_unroll = spec["scan_unroll"] if scan_unroll is None else scan_unroll
     forward, forward_backward = make_step_functions(cell, sizes, seeds, remat=remat, fused=fused,
-                                                    scan_unroll=spec["scan_unroll"])
+                                                    scan_unroll=scan_unroll)
     start = time.perf_counter()
     jax.block_until_ready(forward_backward(*arguments))
     compile_s = time.perf_counter() - start
@@ -155,6 +171,7 @@ def run_worker(spec: dict) -> dict:
     return {
         "cell": variant,
         "seeds": seeds,
+        "scan_unroll": scan_unroll,
         "vmap": seeds > 1,
         "forward_backward_ms_median": statistics.median(fb_times),
         "forward_backward_ms_min": min(fb_times),
@@ -200,10 +217,10 @@ def main(argv: list[str] | None = None) -> None:
             if completed.returncode != 0:  # e.g. out of memory: record it and go on
                 error = (completed.stderr.strip().splitlines() or ["no output"])[-1]
                 results.append({"cell": variant, "seeds": seeds, "error": error})
-                print(f"{variant:10s} seeds={seeds}: FAILED {error}")
+                print(f"{variant:16s} seeds={seeds}: FAILED {error}")
                 continue
             results.append(json.loads(completed.stdout.strip().splitlines()[-1]))
-            print(f"{variant:10s} seeds={seeds}: fwd+bwd {results[-1]['forward_backward_ms_median']:.3f} ms "
+            print(f"{variant:16s} seeds={seeds}: fwd+bwd {results[-1]['forward_backward_ms_median']:.3f} ms "
                   f"(fwd {results[-1]['forward_ms_median']:.3f} ms), peak {results[-1]['peak_bytes_in_use']}")
     measured = [r for r in results if "error" not in r]
     if not measured:
@@ -215,7 +232,7 @@ def main(argv: list[str] | None = None) -> None:
         "versions": {"jax": jax.__version__, "flax": flax.__version__, "python": platform.python_version()},
         "config": {**sizes, "small": args.small, "repeats": repeats, "warmup": args.warmup,
                    "scan_unroll": args.scan_unroll,
-                   "variants": {name: dict(zip(("cell", "fused", "remat", "recompute_synapses"), spec, strict=True))
+                   "variants": {name: dict(zip(VARIANT_FIELDS, spec, strict=True))
                                 for name, spec in VARIANTS.items() if name in args.cells},
                    "cfc": "mode=default, 1 backbone layer, lecun_tanh", "ltc": "FullyConnected, 6 unfolds, softplus",
                    "dt": f"U(0, {MAX_DT}) per sample", "reset_probability": RESET_PROBABILITY,

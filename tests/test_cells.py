@@ -300,6 +300,7 @@ def test_clip_ltc_parameters_clips_only_constrained_ones():
         (lambda: LTCCell(8, input_mapping="sigmoid"), "'sigmoid'", "affine"),
         (lambda: LTCCell(8, output_mapping=None), "None", "linear"),
         (lambda: LTCCell(8, implicit_param_constraints="yes"), "'yes'", "True"),
+        (lambda: LTCCell(8, manual_backward="no"), "manual_backward='no'", "True"),
     ],
 )
 def test_bad_configs_raise_value_error_naming_the_value(factory, bad_value, allowed):
@@ -336,3 +337,79 @@ def test_fused_unroll_matches_step_by_step_values_and_gradients(name):
         np.testing.assert_allclose(fused, step, atol=1e-6, rtol=1e-5)
     np.testing.assert_allclose(unroll(cell, variables, h0, inputs, dts, resets, fused=True).states,
                                unroll(cell, variables, h0, inputs, dts, resets, fused=False).states, atol=1e-6)
+
+
+def perturbed_ltc_variables(cell, seed: int):
+    """Initial LTC variables plus noise on every parameter (so no symmetry hides a wrong gradient)."""
+    variables = init_cell(cell, seed)
+    leaves, tree = jax.tree.flatten(variables)
+    keys = jax.random.split(jax.random.PRNGKey(100 + seed), len(leaves))
+    noisy = [leaf + 0.3 * jax.random.normal(key, leaf.shape) for leaf, key in zip(leaves, keys, strict=True)]
+    return jax.tree.unflatten(tree, noisy)
+
+
+def manual_and_autodiff_cells(**config):
+    return LTCCell(HIDDEN, manual_backward=True, **config), LTCCell(HIDDEN, manual_backward=False, **config)
+
+
+def assert_trees_close(actual, expected, rtol=1e-5):
+    for got, want in zip(jax.tree.leaves(actual), jax.tree.leaves(expected), strict=True):
+        scale = float(jnp.max(jnp.abs(want))) + 1e-12
+        np.testing.assert_allclose(got, want, atol=rtol * scale, rtol=rtol)
+
+
+@pytest.mark.parametrize("constraints", [True, False])
+def test_ltc_manual_backward_matches_autodiff_through_unroll_with_resets(constraints):
+    manual, autodiff = manual_and_autodiff_cells(implicit_param_constraints=constraints, output_size=4)
+    variables = perturbed_ltc_variables(autodiff, seed=3)
+    inputs, dts, h0 = random_sequence(12, seed=4)
+    resets = jax.random.bernoulli(jax.random.PRNGKey(6), 0.2, (12, BATCH)).at[0, 1].set(True)
+    reset_state = 0.2 * jnp.ones((BATCH, HIDDEN))
+
+    def loss(cell, fused, variables, h0, xs, dts, reset_state):
+        result = unroll(cell, variables, h0, xs, dts, resets, reset_state=reset_state, fused=fused)
+        return jnp.mean(jnp.sin(3 * result.states)) + jnp.mean(result.outputs * jnp.arange(4))
+
+    arguments = (variables, h0, inputs, dts, reset_state)
+    for fused in (True, False):
+        grad = jax.jit(jax.value_and_grad(functools.partial(loss, manual, fused), argnums=(0, 1, 2, 3, 4)))
+        want = jax.jit(jax.value_and_grad(functools.partial(loss, autodiff, fused), argnums=(0, 1, 2, 3, 4)))
+        (value, grads), (want_value, want_grads) = grad(*arguments), want(*arguments)
+        assert float(value) == float(want_value)  # identical forward operations
+        assert_trees_close(grads, want_grads)
+    np.testing.assert_array_equal(unroll(manual, variables, h0, inputs, dts, resets).states,
+                                  unroll(autodiff, variables, h0, inputs, dts, resets).states)
+
+
+def test_ltc_manual_backward_at_zero_dt_and_zero_capacitance():
+    manual, autodiff = manual_and_autodiff_cells(implicit_param_constraints=False)
+    variables = perturbed_ltc_variables(autodiff, seed=5)
+    variables["params"]["cm"] = variables["params"]["cm"].at[:2].set(0.0)
+    inputs, _, h0 = random_sequence(3, seed=2)
+    dt = jnp.array([0.0, 0.7, 0.0])
+
+    def loss(cell, variables, h0, x, dt):
+        new_state, output = cell.apply(variables, h0, x, dt)
+        return jnp.sum(new_state**3) + jnp.sum(output)
+
+    grad = jax.grad(functools.partial(loss, manual), argnums=(0, 1, 2, 3))(variables, h0, inputs[0], dt)
+    want = jax.grad(functools.partial(loss, autodiff), argnums=(0, 1, 2, 3))(variables, h0, inputs[0], dt)
+    assert all(bool(jnp.all(jnp.isfinite(leaf))) for leaf in jax.tree.leaves(grad))
+    assert_trees_close(grad, want)
+
+
+def test_ltc_manual_backward_matches_autodiff_under_vmap_over_seeds_and_remat():
+    manual, autodiff = manual_and_autodiff_cells()
+    stacked = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[perturbed_ltc_variables(autodiff, s) for s in range(3)])
+    inputs, dts, h0 = random_sequence(8, seed=9)
+
+    def loss(cell, remat, variables):
+        return jnp.mean(unroll(cell, variables, h0, inputs, dts, remat=remat).states ** 2)
+
+    want = jax.jit(jax.vmap(jax.value_and_grad(functools.partial(loss, autodiff, False))))(stacked)
+    for remat in (False, True):
+        got = jax.jit(jax.vmap(jax.value_and_grad(functools.partial(loss, manual, remat))))(stacked)
+        np.testing.assert_allclose(got[0], want[0], rtol=1e-6)
+        for seed in range(3):
+            assert_trees_close(jax.tree.map(lambda leaf, s=seed: leaf[s], got[1]),
+                               jax.tree.map(lambda leaf, s=seed: leaf[s], want[1]))

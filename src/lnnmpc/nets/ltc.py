@@ -32,6 +32,7 @@ from lnnmpc.nets.common import (
     constant_array,
     uniform_range,
 )
+from lnnmpc.nets.ltc_ode import ltc_unfolds, semi_implicit_euler_step, synaptic_currents
 
 LTC_MAPPINGS = ("affine", "linear", "none")
 
@@ -96,6 +97,11 @@ class LTCCell(ZeroInitialState, nn.Module):
         recompute_synapses: wrap the (B, N, H) synaptic activations in ``jax.checkpoint`` so the backward
             pass recomputes them from the (B, N) presynaptic values instead of storing ~5 such tensors per
             sub-step (same values; at B=256, H=64, 42 steps: 4.8 GB -> 0.25 GB and faster on CPU).
+        manual_backward: run the recurrent sub-steps through :func:`~lnnmpc.nets.ltc_ode.ltc_unfolds`, whose
+            hand-derived ``custom_vjp`` stores only (B, H) values per sub-step and recomputes the synaptic
+            sigmoids inside fused reductions (same forward values; gradients equal up to float32 round-off).
+            Takes precedence over ``recompute_synapses`` for the recurrent synapses. ``False``: JAX autodiff of
+            the sub-steps (the previous path; benchmark variant ``ltc``, this one is ``ltc-vjp``).
         param_dtype: dtype of the parameters.
     """
 
@@ -108,6 +114,7 @@ class LTCCell(ZeroInitialState, nn.Module):
     implicit_param_constraints: bool = True
     erev_init_seed: int = 1111
     recompute_synapses: bool = True
+    manual_backward: bool = True
     param_dtype: Any = jnp.float32
 
     def __post_init__(self) -> None:
@@ -123,6 +130,7 @@ class LTCCell(ZeroInitialState, nn.Module):
         check_choice("output_mapping", self.output_mapping, LTC_MAPPINGS)
         check_choice("implicit_param_constraints", self.implicit_param_constraints, (True, False))
         check_choice("recompute_synapses", self.recompute_synapses, (True, False))
+        check_choice("manual_backward", self.manual_backward, (True, False))
         super().__post_init__()
 
     @property
@@ -196,37 +204,14 @@ def ltc_integrate(
     """
     cm = _positive(cell, params["cm"])
     synapses = (_positive(cell, params["w"]), params["sigma"], params["mu"], params["erev"])
-    currents = jax.checkpoint(synaptic_currents) if cell.recompute_synapses else synaptic_currents
     sub_step = as_time_delta(dt, state.shape[0], jnp.result_type(drive, state)) / cell.ode_unfolds
+    if cell.manual_backward:
+        new_state = ltc_unfolds(cell.ode_unfolds, state, drive, conductance, cm, *synapses, sub_step)
+        return new_state, _affine(params, "output", new_state[:, : cell.readout_size])
+    currents = jax.checkpoint(synaptic_currents) if cell.recompute_synapses else synaptic_currents
     new_state = state
     for _ in range(cell.ode_unfolds):
         recurrent_num, recurrent_den = currents(new_state, *synapses)
         new_state = semi_implicit_euler_step(new_state, cm, drive + recurrent_num, conductance + recurrent_den,
                                              sub_step)
     return new_state, _affine(params, "output", new_state[:, : cell.readout_size])
-
-
-def synaptic_currents(
-    presynaptic: jax.Array, weight: jax.Array, sigma: jax.Array, mu: jax.Array, erev: jax.Array
-) -> tuple[jax.Array, jax.Array]:
-    """Summed synaptic drive and conductance onto each target neuron.
-
-    ``presynaptic`` (..., B, N); ``weight, sigma, mu, erev`` (N, H). Activation
-    ``a = weight * sigmoid(sigma * (presynaptic[..., :, None] - mu))`` (..., B, N, H); returns
-    ``(sum_N a * erev, sum_N a)``, both (..., B, H).
-    """
-    activation = weight * jax.nn.sigmoid(sigma * (presynaptic[..., :, None] - mu))
-    return jnp.sum(activation * erev, axis=-2), jnp.sum(activation, axis=-2)
-
-
-def semi_implicit_euler_step(
-    v: jax.Array, cm: jax.Array, drive: jax.Array, conductance: jax.Array, sub_step: jax.Array
-) -> jax.Array:
-    """One fused Euler sub-step ``v + s (drive - v G) / (cm + s G)``; exactly ``v`` when ``s = 0``.
-
-    ``v, drive, conductance`` (B, H); ``cm`` (H,); ``sub_step`` (B, 1). A zero denominator (only possible with
-    ``cm = 0`` and ``s = 0``) is replaced by 1 so that the update is 0 instead of NaN.
-    """
-    denominator = cm + sub_step * conductance
-    denominator = jnp.where(denominator == 0, jnp.ones_like(denominator), denominator)
-    return v + sub_step * (drive - v * conductance) / denominator
