@@ -34,6 +34,7 @@ def plot_env_throughput(path: str) -> None:
             options = r.get("physics_options", {})
             label = "exact" if not any(v not in (None, False) for v in options.values()) else (
                 f"Newton {options.get('iterations')}/{options.get('ls_iterations')}"
+                + (" unrolled" if options.get("unrolled_solver") else "")
                 + (" no eulerdamp" if options.get("disable_eulerdamp") else "")
                 + (f" contacts<={options['max_contact_points']}" if options.get("max_contact_points") else "")
             )
@@ -45,7 +46,8 @@ def plot_env_throughput(path: str) -> None:
     for i, ((domain, label), points) in enumerate(sorted(lines.items())):
         batches = sorted(points)
         fast = FAST_PROFILES[domain]
-        is_default = label == f"Newton {fast.iterations}/{fast.ls_iterations}"
+        is_default = label == f"Newton {fast.iterations}/{fast.ls_iterations}" + (
+            " unrolled" if fast.unrolled_solver else "")
         style = "-" if domain == "walker" else "--" if domain == "cartpole" else ":"
         ax.plot(batches, [points[b] for b in batches], style, marker="o", color=colors[i % len(colors)],
                 linewidth=3 if is_default else 1.2,

@@ -5,17 +5,20 @@ Two named profiles:
 * ``"exact"`` keeps dm_control's options: solver iterations, line search, integrator (RK4 for cartpole and
   acrobot, Euler for walker) and Euler damping. Only the energy flag is cleared: MJX cannot compute energy and
   none of these tasks reads it. With ``jax_enable_x64`` this steps like ``dm_control.suite.load`` to ~1e-10.
-* ``"fast"`` (the training default) only lowers the constraint solver's effort; integrators, time steps and
-  contact geometry stay dm_control's, so the agent learns dm_control's dynamics:
+* ``"fast"`` (the training default) only lowers the constraint solver's effort and runs its iterations unrolled
+  (:mod:`lnnmpc.envs.solver`: MJX's iterates without the ``while_loop``); integrators, time steps and contact
+  geometry stay dm_control's, so the agent learns dm_control's dynamics:
 
-  - cartpole, acrobot: Newton ``iterations=1``, ``ls_iterations=4`` (dm_control: 100 / 50). Cartpole's only
-    constraint is the slider limit and acrobot has constraints disabled, so trajectories equal ``exact`` to
-    float32 round-off.
-  - walker: Newton ``iterations=4``, ``ls_iterations=4``. Matches ``exact`` to 1e-7 through the first ground
+  - cartpole: Newton ``iterations=2``, ``ls_iterations=2`` (dm_control: 100 / 50). The slider limit is the only
+    constraint; two iterations resolve the cart hitting the end of the rail exactly as ``exact`` does, one does
+    not (the pole's angular velocity is then off by ~0.5).
+  - acrobot: constraints are disabled in dm_control's XML, so the solver never runs; settings are moot.
+  - walker: Newton ``iterations=4``, ``ls_iterations=4``. Matches ``exact`` to 1e-6 through the first ground
     contacts and gives the same random-action returns. Weaker settings break the physics: 1 iteration blows up
     (velocities grow without bound, NaN within ~100 agent steps of random actions), 2 / 4 gives unphysical
-    velocities (|qvel| > 200) and +25% random-action return; a 0.005 s time step moves positions by 0.05 after
-    one agent step. See ``tests/test_env_fast.py`` and ``benchmarks/results/``.
+    velocities (|qvel| > 200) and +25% random-action return, 3 / 4 drifts to 1e-2 within two agent steps; a
+    0.005 s time step moves positions by 0.05 after one agent step. See ``tests/test_env_fast.py`` and
+    ``benchmarks/results/``.
 
 Any other combination can be given as a :class:`PhysicsOptions`.
 """
@@ -82,7 +85,7 @@ class PhysicsOptions:
 # The "fast" profile per domain (see the module docstring for why each setting is safe).
 FAST_PROFILES = {
     "cartpole": PhysicsOptions(iterations=2, ls_iterations=2, unrolled_solver=True),
-    "acrobot": PhysicsOptions(iterations=1, ls_iterations=4, unrolled_solver=True),
+    "acrobot": PhysicsOptions(iterations=1, ls_iterations=4),  # constraints disabled: the solver never runs
     "walker": PhysicsOptions(iterations=4, ls_iterations=4, unrolled_solver=True),
 }
 
