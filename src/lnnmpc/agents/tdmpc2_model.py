@@ -1,0 +1,148 @@
+"""TD-MPC2's world model in Flax (official architecture and defaults).
+
+Components (``z`` is the SimNorm latent (L,), ``a`` the action (A,)):
+
+* encoder   o -> z: MLP (enc_dim x max(num_enc_layers - 1, 1)) -> latent_dim, SimNorm(groups of 8)
+* dynamics  [z, a] -> z': MLP (mlp_dim x 2) -> latent_dim, SimNorm
+* reward    [z, a] -> logits (num_bins,): MLP (mlp_dim x 2) -> num_bins, zero-initialised output layer
+* policy    z -> (mean, raw log std) (A,) each: MLP (mlp_dim x 2) -> 2A
+* Q         [z, a] -> logits (num_q, num_bins): an ensemble of num_q MLPs (dropout 0.01 after the first
+  layer), zero-initialised output layers
+
+Hidden layers are Dense -> (Dropout) -> LayerNorm -> Mish, as TD-MPC2's ``NormedLinear``; kernels are
+truncated-normal(0.02), biases zero. Sizes follow TD-MPC2's ``MODEL_SIZE`` table (1M and 5M parameters).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+MODEL_SIZES = {
+    1: {"enc_dim": 256, "mlp_dim": 384, "latent_dim": 128, "num_enc_layers": 2, "num_q": 2},
+    5: {"enc_dim": 256, "mlp_dim": 512, "latent_dim": 512, "num_enc_layers": 2, "num_q": 5},
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldModelConfig:
+    """Architecture of the world model; :meth:`from_size` fills the size-dependent fields."""
+
+    obs_dim: int
+    action_dim: int
+    enc_dim: int = 256
+    mlp_dim: int = 512
+    latent_dim: int = 512
+    num_enc_layers: int = 2
+    num_q: int = 5
+    simnorm_dim: int = 8
+    num_bins: int = 101
+    q_dropout: float = 0.01
+
+    def __post_init__(self):
+        for name in ("obs_dim", "action_dim", "enc_dim", "mlp_dim", "latent_dim", "num_enc_layers",
+                     "simnorm_dim", "num_bins"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if not isinstance(self.num_q, int) or self.num_q < 2:
+            raise ValueError(f"num_q must be an integer >= 2 (targets use the min of 2 heads), got {self.num_q!r}")
+        if self.latent_dim % self.simnorm_dim:
+            raise ValueError(f"latent_dim {self.latent_dim} must be divisible by simnorm_dim {self.simnorm_dim}")
+        if not 0 <= self.q_dropout < 1:
+            raise ValueError(f"q_dropout must be in [0, 1), got {self.q_dropout!r}")
+
+    @classmethod
+    def from_size(cls, obs_dim: int, action_dim: int, model_size: int = 5, **overrides) -> WorldModelConfig:
+        if model_size not in MODEL_SIZES:
+            raise ValueError(f"unknown model_size {model_size!r}; known: {', '.join(map(str, MODEL_SIZES))}")
+        return cls(obs_dim=obs_dim, action_dim=action_dim, **{**MODEL_SIZES[model_size], **overrides})
+
+
+def mish(x: jax.Array) -> jax.Array:
+    return x * jnp.tanh(jax.nn.softplus(x))
+
+
+def simnorm(x: jax.Array, group_size: int) -> jax.Array:
+    """Softmax within consecutive groups of ``group_size`` along the last axis (shape kept)."""
+    groups = x.reshape(*x.shape[:-1], x.shape[-1] // group_size, group_size)
+    return jax.nn.softmax(groups, axis=-1).reshape(x.shape)
+
+
+_KERNEL_INIT = nn.initializers.truncated_normal(0.02)
+
+
+class MLP(nn.Module):
+    """Hidden NormedLinear layers then a Dense output; optional SimNorm output, zero-initialised output."""
+
+    hidden: tuple[int, ...]
+    out_dim: int
+    simnorm_dim: int = 0  # 0: no SimNorm on the output
+    dropout: float = 0.0  # after the first hidden Dense
+    zero_output: bool = False
+
+    @nn.compact
+    def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
+        for i, width in enumerate(self.hidden):
+            x = nn.Dense(width, kernel_init=_KERNEL_INIT)(x)
+            if i == 0 and self.dropout > 0:
+                x = nn.Dropout(self.dropout, deterministic=deterministic)(x)
+            x = mish(nn.LayerNorm(epsilon=1e-5)(x))
+        init = nn.initializers.zeros if self.zero_output else _KERNEL_INIT
+        x = nn.Dense(self.out_dim, kernel_init=init)(x)
+        return simnorm(x, self.simnorm_dim) if self.simnorm_dim else x
+
+
+class WorldModel(nn.Module):
+    """TD-MPC2 world model; call its methods with ``model.apply(variables, ..., method=...)``."""
+
+    config: WorldModelConfig
+
+    def setup(self):
+        c = self.config
+        self.encoder = MLP((c.enc_dim,) * max(c.num_enc_layers - 1, 1), c.latent_dim, c.simnorm_dim)
+        self.dynamics = MLP((c.mlp_dim, c.mlp_dim), c.latent_dim, c.simnorm_dim)
+        self.reward_head = MLP((c.mlp_dim, c.mlp_dim), c.num_bins, zero_output=True)
+        self.policy_head = MLP((c.mlp_dim, c.mlp_dim), 2 * c.action_dim)
+        q_ensemble = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True, "dropout": True},
+                             in_axes=None, axis_size=c.num_q)
+        self.q_heads = q_ensemble((c.mlp_dim, c.mlp_dim), c.num_bins, dropout=c.q_dropout, zero_output=True)
+
+    def encode(self, obs: jax.Array) -> jax.Array:
+        """obs (..., obs_dim) -> z (..., latent_dim)."""
+        return self.encoder(obs)
+
+    def next(self, z: jax.Array, action: jax.Array) -> jax.Array:
+        """(z (..., L), a (..., A)) -> next latent (..., L)."""
+        return self.dynamics(jnp.concatenate([z, action], axis=-1))
+
+    def reward(self, z: jax.Array, action: jax.Array) -> jax.Array:
+        """Reward logits (..., num_bins)."""
+        return self.reward_head(jnp.concatenate([z, action], axis=-1))
+
+    def policy(self, z: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """(mean, raw log std), each (..., A); squash and scale them with :mod:`lnnmpc.agents.math`."""
+        mean, raw_log_std = jnp.split(self.policy_head(z), 2, axis=-1)
+        return mean, raw_log_std
+
+    def q(self, z: jax.Array, action: jax.Array, deterministic: bool = True) -> jax.Array:
+        """Q logits of every head (num_q, ..., num_bins); dropout is active when not ``deterministic``."""
+        return self.q_heads(jnp.concatenate([z, action], axis=-1), deterministic)
+
+    def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
+        """Touches every component (used by ``init``)."""
+        z = self.encode(obs)
+        return self.next(z, action), self.reward(z, action), self.policy(z), self.q(z, action)
+
+
+def init_world_model(config: WorldModelConfig, key: jax.Array):
+    """Parameters of a fresh model: ``{'params': ...}``."""
+    model = WorldModel(config)
+    return model, model.init(key, jnp.zeros((config.obs_dim,)), jnp.zeros((config.action_dim,)))
+
+
+def count_parameters(variables) -> int:
+    return sum(x.size for x in jax.tree_util.tree_leaves(variables))

@@ -1,0 +1,73 @@
+"""TD-MPC2 world model: sizes, shapes, initialisation and validation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lnnmpc.agents.tdmpc2_model import WorldModelConfig, count_parameters, init_world_model, simnorm
+
+
+@pytest.fixture(scope="module")
+def small():
+    config = WorldModelConfig.from_size(5, 1, 1, enc_dim=32, mlp_dim=32, latent_dim=16, num_q=3)
+    model, variables = init_world_model(config, jax.random.key(0))
+    return config, model, variables
+
+
+@pytest.mark.parametrize("size,low,high", [(1, 0.9e6, 1.5e6), (5, 4.0e6, 6.0e6)])
+def test_parameter_counts_match_the_size_names(size, low, high):
+    config = WorldModelConfig.from_size(24, 6, size)
+    variables = jax.eval_shape(lambda k: init_world_model(config, k)[1], jax.random.key(0))
+    assert low < count_parameters(variables) < high
+
+
+def test_shapes_simnorm_and_zero_initialised_heads(small):
+    config, model, variables = small
+    obs, action = jnp.ones((7, 5)), jnp.ones((7, 1))
+    z = model.apply(variables, obs, method="encode")
+    assert z.shape == (7, 16)
+    np.testing.assert_allclose(np.asarray(z).reshape(7, 2, 8).sum(-1), 1.0, rtol=1e-5)  # SimNorm groups of 8
+    z_next = model.apply(variables, z, action, method="next")
+    assert z_next.shape == (7, 16) and np.all(np.asarray(z_next) >= 0)
+    reward = model.apply(variables, z, action, method="reward")
+    q = model.apply(variables, z, action, method="q")
+    assert reward.shape == (7, 101) and q.shape == (3, 7, 101)
+    assert float(jnp.abs(reward).max()) == 0.0 and float(jnp.abs(q).max()) == 0.0
+    mean, raw_log_std = model.apply(variables, z, method="policy")
+    assert mean.shape == raw_log_std.shape == (7, 1)
+
+
+def test_q_heads_are_independent_and_dropout_is_train_only(small):
+    config, model, variables = small
+    first_kernels = variables["params"]["q_heads"]["Dense_0"]["kernel"]  # (num_q, in, width)
+    assert first_kernels.shape[0] == 3
+    assert not np.allclose(first_kernels[0], first_kernels[1])
+    # Give the output layers weights so Q depends on the hidden layer, then compare train vs eval.
+    params = jax.tree_util.tree_map(lambda x: x, variables["params"])
+    params["q_heads"]["Dense_2"]["kernel"] = jnp.ones_like(params["q_heads"]["Dense_2"]["kernel"])
+    z, a = jnp.ones((4, 16)) / 8, jnp.ones((4, 1))
+    evals = [model.apply({"params": params}, z, a, method="q") for _ in range(2)]
+    np.testing.assert_array_equal(np.asarray(evals[0]), np.asarray(evals[1]))
+    train = model.apply({"params": params}, z, a, False, method="q", rngs={"dropout": jax.random.key(1)})
+    assert not np.allclose(np.asarray(train), np.asarray(evals[0]))
+
+
+def test_simnorm_matches_numpy():
+    x = np.random.default_rng(0).normal(size=(3, 16))
+    groups = x.reshape(3, 2, 8)
+    expected = (np.exp(groups) / np.exp(groups).sum(-1, keepdims=True)).reshape(3, 16)
+    np.testing.assert_allclose(np.asarray(simnorm(jnp.asarray(x), 8)), expected, rtol=1e-5)
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="unknown model_size 3; known: 1, 5"):
+        WorldModelConfig.from_size(5, 1, 3)
+    with pytest.raises(ValueError, match="latent_dim 20 must be divisible by simnorm_dim 8"):
+        WorldModelConfig(obs_dim=5, action_dim=1, latent_dim=20)
+    with pytest.raises(ValueError, match="num_q must be an integer >= 2"):
+        WorldModelConfig(obs_dim=5, action_dim=1, num_q=1)
+    with pytest.raises(ValueError, match="obs_dim must be an integer >= 1, got 0"):
+        WorldModelConfig(obs_dim=0, action_dim=1)
