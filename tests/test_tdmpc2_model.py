@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lnnmpc.agents.tdmpc2_model import WorldModelConfig, count_parameters, init_world_model, simnorm
+from lnnmpc.agents.math import simnorm
+from lnnmpc.agents.tdmpc2_model import WorldModelConfig, count_parameters, init_world_model
 
 
 @pytest.fixture(scope="module")

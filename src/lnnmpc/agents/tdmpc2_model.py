@@ -21,6 +21,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from lnnmpc.agents.math import simnorm
+
 MODEL_SIZES = {
     1: {"enc_dim": 256, "mlp_dim": 384, "latent_dim": 128, "num_enc_layers": 2, "num_q": 2},
     5: {"enc_dim": 256, "mlp_dim": 512, "latent_dim": 512, "num_enc_layers": 2, "num_q": 5},
@@ -64,12 +66,6 @@ class WorldModelConfig:
 
 def mish(x: jax.Array) -> jax.Array:
     return x * jnp.tanh(jax.nn.softplus(x))
-
-
-def simnorm(x: jax.Array, group_size: int) -> jax.Array:
-    """Softmax within consecutive groups of ``group_size`` along the last axis (shape kept)."""
-    groups = x.reshape(*x.shape[:-1], x.shape[-1] // group_size, group_size)
-    return jax.nn.softmax(groups, axis=-1).reshape(x.shape)
 
 
 _KERNEL_INIT = nn.initializers.truncated_normal(0.02)

@@ -1,0 +1,211 @@
+"""TD-MPC2 (the baseline agent): losses, one compiled update step and one compiled act step.
+
+Update on a time-major batch of H + 1 replay records (obs (H+1, B, d), action (H+1, B, A), reward (H+1, B); the
+last record's action and reward are unused), following TD-MPC2:
+
+* targets: next latents ``z'_t = enc(o_{t+1})`` (no gradient); TD targets ``r_t + γ Q̄(z'_t, π(z'_t))`` with
+  Q̄ the min of 2 random heads of the Polyak target network;
+* world model: latent rollout ``ẑ_{t+1} = d(ẑ_t, a_t)`` from ``ẑ_0 = enc(o_0)``; consistency MSE to ``z'_t``,
+  reward and Q soft cross-entropies on two-hot targets at ``ẑ_0..ẑ_{H-1}``, each step weighted ρ^t and averaged
+  over the horizon (Q also over heads); total ``20·consistency + 0.1·reward + 0.1·value``; Adam with the encoder's
+  learning rate × 0.3 and gradient clip 20;
+* policy: on stop-gradient latents ``ẑ_0..ẑ_H``, ``-(1e-4·entropy + Q/scale)`` with Q the mean of 2 random online
+  heads and ``scale`` TD-MPC2's running 5–95 percentile range of Q at t = 0;
+* the target Q network follows the online one with τ = 0.01.
+
+Acting plans with MPPI (:mod:`lnnmpc.agents.mppi`) through the latent model; the two Q heads averaged for the
+terminal value are drawn once per act call.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+from flax.traverse_util import path_aware_map
+
+from lnnmpc.agents import math as M
+from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
+from lnnmpc.agents.tdmpc2_model import WorldModel, WorldModelConfig
+
+
+@dataclasses.dataclass(frozen=True)
+class TDMPC2Config:
+    """Agent hyper-parameters (TD-MPC2's published defaults)."""
+
+    model: WorldModelConfig
+    planner: MPPIConfig = MPPIConfig()
+    horizon: int = 3
+    rho: float = 0.5
+    gamma: float = 0.99
+    tau: float = 0.01
+    lr: float = 3e-4
+    encoder_lr_scale: float = 0.3
+    grad_clip_norm: float = 20.0
+    consistency_coef: float = 20.0
+    reward_coef: float = 0.1
+    value_coef: float = 0.1
+    entropy_coef: float = 1e-4
+    vmin: float = -10.0
+    vmax: float = 10.0
+
+    def __post_init__(self):
+        if not isinstance(self.horizon, int) or self.horizon < 1:
+            raise ValueError(f"horizon must be an integer >= 1, got {self.horizon!r}")
+        for name in ("rho", "gamma", "tau"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be in (0, 1], got {getattr(self, name)!r}")
+        for name in ("lr", "encoder_lr_scale", "grad_clip_norm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+
+
+@struct.dataclass
+class AgentState:
+    """Everything the agent learns: parameters, Polyak target Q heads, optimiser states, Q scale, update count."""
+
+    params: Any
+    target_q: Any
+    model_opt: Any
+    policy_opt: Any
+    scale: M.ScaleState
+    updates: jax.Array
+
+
+def _labels(params, rule):
+    return path_aware_map(lambda path, _: rule(path[0]), params)
+
+
+def make_optimizers(config: TDMPC2Config) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
+    """(world-model optimiser: all but the policy head; policy optimiser: the policy head only)."""
+    clip = optax.clip_by_global_norm(config.grad_clip_norm)
+    model_tx = optax.multi_transform(
+        {"encoder": optax.chain(clip, optax.adam(config.lr * config.encoder_lr_scale)),
+         "rest": optax.chain(clip, optax.adam(config.lr)), "frozen": optax.set_to_zero()},
+        lambda params: _labels(params, lambda top: "encoder" if top == "encoder" else
+                               "frozen" if top == "policy_head" else "rest"))
+    policy_tx = optax.multi_transform(
+        {"policy": optax.chain(clip, optax.adam(config.lr, eps=1e-5)), "frozen": optax.set_to_zero()},
+        lambda params: _labels(params, lambda top: "policy" if top == "policy_head" else "frozen"))
+    return model_tx, policy_tx
+
+
+class TDMPC2:
+    """Pure functions of the agent (build once; all methods jit and vmap over seeds)."""
+
+    def __init__(self, config: TDMPC2Config):
+        self.config = config
+        self.model = WorldModel(config.model)
+        self.model_tx, self.policy_tx = make_optimizers(config)
+
+    # -------------------------------------------------------------------------------------- state
+    def init(self, key: jax.Array) -> AgentState:
+        c = self.config.model
+        params = self.model.init(key, jnp.zeros((c.obs_dim,)), jnp.zeros((c.action_dim,)))["params"]
+        return AgentState(params=params, target_q=params["q_heads"], model_opt=self.model_tx.init(params),
+                          policy_opt=self.policy_tx.init(params), scale=M.ScaleState.create(),
+                          updates=jnp.zeros((), jnp.int32))
+
+    # --------------------------------------------------------------------------------- components
+    def _apply(self, params, *args, method, **kwargs):
+        return self.model.apply({"params": params}, *args, method=method, **kwargs)
+
+    def _q_values(self, params, z, action, heads, key=None, q_params=None):
+        """Q of the chosen heads (2,) -> (2, ...); dropout on when ``key`` is given."""
+        if q_params is not None:
+            params = {**params, "q_heads": q_params}
+        rngs = {"dropout": key} if key is not None else {}
+        logits = self._apply(params, z, action, key is None, method="q", rngs=rngs)
+        return M.two_hot_inv(logits[heads], self.config.model.num_bins, self.config.vmin, self.config.vmax)
+
+    def _policy_sample(self, params, z, key):
+        mean, raw = self._apply(params, z, method="policy")
+        return M.sample_tanh_gaussian(key, mean, raw)
+
+    def _two_heads(self, key):
+        return jax.random.choice(key, self.config.model.num_q, (2,), replace=False)
+
+    # -------------------------------------------------------------------------------------- losses
+    def world_model_loss(self, params, target_q, batch, key):
+        """Scalar loss and metrics for a batch (see the module docstring)."""
+        cfg, num_bins = self.config, self.config.model.num_bins
+        obs, action, reward = batch["obs"], batch["action"][:-1], batch["reward"][:-1]
+        H = action.shape[0]
+        k_pi, k_heads, k_drop = jax.random.split(key, 3)
+        next_z = jax.lax.stop_gradient(self._apply(params, obs[1:], method="encode"))
+        next_action = self._policy_sample(params, next_z, k_pi).action
+        target_q = self._q_values(params, next_z, next_action, self._two_heads(k_heads), q_params=target_q)
+        td_target = jax.lax.stop_gradient(reward + cfg.gamma * jnp.min(target_q, axis=0))
+
+        def rollout(z, a):
+            z_next = self._apply(params, z, a, method="next")
+            return z_next, z_next
+
+        z0 = self._apply(params, obs[0], method="encode")
+        _, z_pred = jax.lax.scan(rollout, z0, action)  # (H, B, L)
+        zs = jnp.concatenate([z0[None], z_pred])  # (H + 1, B, L)
+        weights = M.discounted_weights(H, cfg.rho)
+        consistency = jnp.sum(weights * jnp.mean((z_pred - next_z) ** 2, axis=(1, 2))) / H
+        reward_logits = self._apply(params, zs[:-1], action, method="reward")
+        reward_ce = M.soft_cross_entropy(reward_logits, reward, num_bins, cfg.vmin, cfg.vmax).mean(axis=1)
+        q_logits = self._apply(params, zs[:-1], action, False, method="q", rngs={"dropout": k_drop})
+        value_ce = M.soft_cross_entropy(q_logits, td_target[None], num_bins, cfg.vmin, cfg.vmax).mean(axis=2)
+        reward_loss = jnp.sum(weights * reward_ce) / H
+        value_loss = jnp.sum(weights * value_ce.sum(axis=0)) / (H * self.config.model.num_q)
+        total = cfg.consistency_coef * consistency + cfg.reward_coef * reward_loss + cfg.value_coef * value_loss
+        metrics = {"consistency_loss": consistency, "reward_loss": reward_loss, "value_loss": value_loss,
+                   "total_loss": total}
+        return total, (jax.lax.stop_gradient(zs), metrics)
+
+    def policy_loss(self, params, zs, scale, key):
+        """Policy objective on stop-gradient latents zs (H + 1, B, L); returns (loss, (new scale, metrics))."""
+        cfg = self.config
+        k_pi, k_heads, k_drop = jax.random.split(key, 3)
+        sample = self._policy_sample(params, zs, k_pi)
+        q = self._q_values(params, zs, sample.action, self._two_heads(k_heads), key=k_drop).mean(axis=0)
+        scale = M.update_scale(scale, jax.lax.stop_gradient(q[0]))
+        q = M.apply_scale(scale, q)
+        weights = M.discounted_weights(zs.shape[0], cfg.rho)
+        per_step = -(cfg.entropy_coef * sample.scaled_entropy + q).mean(axis=1)
+        loss = jnp.mean(weights * per_step)
+        return loss, (scale, {"policy_loss": loss, "q_scale": scale.value, "entropy": -sample.log_prob.mean()})
+
+    # -------------------------------------------------------------------------------------- update
+    def update(self, state: AgentState, batch: dict, key: jax.Array) -> tuple[AgentState, dict]:
+        """One TD-MPC2 update on ``batch`` (obs (H+1, B, d), action (H+1, B, A), reward (H+1, B))."""
+        k_model, k_policy = jax.random.split(key)
+        grads, (zs, metrics) = jax.grad(self.world_model_loss, has_aux=True)(
+            state.params, state.target_q, batch, k_model)
+        updates, model_opt = self.model_tx.update(grads, state.model_opt, state.params)
+        params = optax.apply_updates(state.params, updates)
+        metrics["grad_norm"] = optax.tree.norm(grads)
+        pi_grads, (scale, pi_metrics) = jax.grad(self.policy_loss, has_aux=True)(params, zs, state.scale, k_policy)
+        updates, policy_opt = self.policy_tx.update(pi_grads, state.policy_opt, params)
+        params = optax.apply_updates(params, updates)
+        target_q = M.polyak(state.target_q, params["q_heads"], self.config.tau)
+        new_state = AgentState(params=params, target_q=target_q, model_opt=model_opt, policy_opt=policy_opt,
+                               scale=scale, updates=state.updates + 1)
+        return new_state, {**metrics, **pi_metrics}
+
+    # ----------------------------------------------------------------------------------------- act
+    def act(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
+            first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A))."""
+        params, cfg = state.params, self.config
+        k_heads, k_plan = jax.random.split(key)
+        heads = self._two_heads(k_heads)
+        model = PlanningModel(
+            dynamics=lambda z, a: self._apply(params, z, a, method="next"),
+            reward=lambda z, a: M.two_hot_inv(self._apply(params, z, a, method="reward"),
+                                              cfg.model.num_bins, cfg.vmin, cfg.vmax),
+            value=lambda z, a: self._q_values(params, z, a, heads).mean(axis=0),
+            policy=lambda z, k: self._policy_sample(params, z, k).action,
+        )
+        z = self._apply(params, obs, method="encode")
+        action, mean, _ = mppi_plan(cfg.planner, model, z, prev_mean, k_plan, explore=explore,
+                                    first_step=first_step)
+        return action, mean

@@ -1,0 +1,140 @@
+"""TD-MPC2 agent: losses against a float64 numpy reference, update mechanics, acting."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lnnmpc.agents import math as M
+from lnnmpc.agents.mppi import MPPIConfig
+from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config
+from lnnmpc.agents.tdmpc2_model import WorldModelConfig
+
+H, B, OBS, ACT = 3, 16, 5, 2
+
+
+@pytest.fixture(scope="module")
+def agent():
+    model = WorldModelConfig.from_size(OBS, ACT, 1, enc_dim=32, mlp_dim=32, latent_dim=16, num_q=2, q_dropout=0.0)
+    planner = MPPIConfig(num_samples=64, num_policy_trajectories=8, num_elites=8, iterations=2)
+    return TDMPC2(TDMPC2Config(model=model, planner=planner, horizon=H))
+
+
+def _batch(seed=0):
+    keys = jax.random.split(jax.random.key(seed), 3)
+    return {"obs": jax.random.normal(keys[0], (H + 1, B, OBS)),
+            "action": jnp.tanh(jax.random.normal(keys[1], (H + 1, B, ACT))),
+            "reward": jax.random.uniform(keys[2], (H + 1, B))}
+
+
+def _np_soft_ce(logits, target, num_bins=101, vmin=-10.0, vmax=10.0):
+    """Independent float64 two-hot cross-entropy."""
+    logits, target = np.asarray(logits, np.float64), np.asarray(target, np.float64)
+    x = np.clip(np.sign(target) * np.log1p(np.abs(target)), vmin, vmax)
+    width = (vmax - vmin) / (num_bins - 1)
+    pos = (x - vmin) / width
+    low = np.clip(np.floor(pos).astype(int), 0, num_bins - 1)
+    frac = pos - low
+    high = np.clip(low + 1, 0, num_bins - 1)
+    probs = np.zeros(logits.shape)
+    np.put_along_axis(probs, low[..., None], (1 - frac)[..., None], axis=-1)
+    np.put_along_axis(probs, high[..., None], np.take_along_axis(probs, high[..., None], -1) + frac[..., None], -1)
+    shifted = logits - logits.max(-1, keepdims=True)
+    log_softmax = shifted - np.log(np.exp(shifted).sum(-1, keepdims=True))
+    return -(probs * log_softmax).sum(-1)
+
+
+def test_world_model_loss_matches_numpy_reference(agent):
+    state = agent.init(jax.random.key(0))
+    # Non-zero reward/Q output layers, so the cross-entropies are not trivially log(101).
+    params = jax.tree_util.tree_map(lambda x: x + 0.05 * jnp.sin(jnp.arange(x.size).reshape(x.shape)), state.params)
+    batch, key = _batch(), jax.random.key(7)
+    total, (_, metrics) = jax.jit(agent.world_model_loss)(params, params["q_heads"], batch, key)
+
+    apply = lambda *a, method, **kw: np.asarray(agent.model.apply({"params": params}, *a, method=method, **kw),
+                                                np.float64)
+    k_pi, _, _ = jax.random.split(key, 3)
+    obs, action, reward = batch["obs"], batch["action"][:-1], np.asarray(batch["reward"][:-1], np.float64)
+    next_z = apply(obs[1:], method="encode")
+    mean, raw = agent.model.apply({"params": params}, jnp.asarray(next_z, jnp.float32), method="policy")
+    next_a = M.sample_tanh_gaussian(k_pi, mean, raw).action
+    bins = np.asarray(M.bin_values(), np.float64)
+    q_logits = apply(jnp.asarray(next_z, jnp.float32), next_a, method="q")
+    probs = np.exp(q_logits - q_logits.max(-1, keepdims=True))
+    probs /= probs.sum(-1, keepdims=True)
+    sym = probs @ bins
+    target_q = np.sign(sym) * np.expm1(np.abs(sym))
+    td = reward + 0.99 * target_q.min(axis=0)
+    zs = [apply(obs[0], method="encode")]
+    for t in range(H):
+        zs.append(apply(jnp.asarray(zs[-1], jnp.float32), action[t], method="next"))
+    zs = np.stack(zs)
+    w = 0.5 ** np.arange(H)
+    consistency = np.sum(w * ((zs[1:] - next_z) ** 2).mean(axis=(1, 2))) / H
+    r_logits = apply(jnp.asarray(zs[:-1], jnp.float32), action, method="reward")
+    reward_loss = np.sum(w * _np_soft_ce(r_logits, reward).mean(1)) / H
+    q_all = apply(jnp.asarray(zs[:-1], jnp.float32), action, method="q")
+    value_loss = np.sum(w * _np_soft_ce(q_all, td[None]).mean(2).sum(0)) / (H * 2)
+    np.testing.assert_allclose(float(metrics["consistency_loss"]), consistency, rtol=1e-4, atol=1e-8)
+    np.testing.assert_allclose(float(metrics["reward_loss"]), reward_loss, rtol=1e-4)
+    np.testing.assert_allclose(float(metrics["value_loss"]), value_loss, rtol=1e-4)
+    np.testing.assert_allclose(float(total), 20 * consistency + 0.1 * reward_loss + 0.1 * value_loss, rtol=1e-4)
+
+
+def test_updates_learn_a_fixed_batch_and_respect_parameter_groups(agent):
+    state = agent.init(jax.random.key(1))
+    batch = _batch(1)
+    update = jax.jit(agent.update)
+    first = None
+    for i in range(30):
+        new_state, metrics = update(state, batch, jax.random.key(100 + i))
+        if i == 0:
+            first = metrics
+            # Target Q moved by exactly tau towards the online heads.
+            expected = M.polyak(state.target_q, new_state.params["q_heads"], 0.01)
+            for a, b in zip(jax.tree_util.tree_leaves(expected), jax.tree_util.tree_leaves(new_state.target_q),
+                            strict=True):
+                np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-8)
+        state = new_state
+    assert float(metrics["reward_loss"]) < float(first["reward_loss"]) - 0.1
+    assert float(metrics["value_loss"]) < float(first["value_loss"]) - 0.1
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+    assert int(state.updates) == 30
+
+
+def test_policy_head_is_only_trained_by_the_policy_loss(agent):
+    state = agent.init(jax.random.key(2))
+    params = state.params
+    grads = jax.tree_util.tree_map(jnp.ones_like, params)
+    updates, _ = agent.model_tx.update(grads, state.model_opt, params)
+    assert all(float(jnp.abs(x).max()) == 0 for x in jax.tree_util.tree_leaves(updates["policy_head"]))
+    assert float(jnp.abs(updates["dynamics"]["Dense_0"]["kernel"]).max()) > 0
+    # Encoder steps are 0.3x the others (Adam's first step is lr * sign(grad)).
+    step_size = lambda group: jnp.abs(updates[group]["Dense_0"]["kernel"]).max()
+    ratio = step_size("encoder") / step_size("dynamics")
+    np.testing.assert_allclose(float(ratio), 0.3, rtol=1e-3)
+    pi_updates, _ = agent.policy_tx.update(grads, state.policy_opt, params)
+    assert float(jnp.abs(pi_updates["policy_head"]["Dense_0"]["kernel"]).max()) > 0
+    assert all(float(jnp.abs(x).max()) == 0 for x in jax.tree_util.tree_leaves(pi_updates["encoder"]))
+
+
+def test_act_under_jit_and_vmap_over_seeds(agent):
+    states = jax.vmap(agent.init)(jax.random.split(jax.random.key(3), 3))
+    act = jax.jit(jax.vmap(lambda s, o, k: agent.act(s, o, jnp.zeros((H, ACT)), k, explore=True,
+                                                     first_step=jnp.array(True))))
+    obs = jax.random.normal(jax.random.key(4), (3, OBS))
+    actions, means = act(states, obs, jax.random.split(jax.random.key(5), 3))
+    assert actions.shape == (3, ACT) and means.shape == (3, H, ACT)
+    assert np.all(np.abs(np.asarray(actions)) <= 1)
+    again, _ = act(states, obs, jax.random.split(jax.random.key(5), 3))
+    np.testing.assert_array_equal(np.asarray(actions), np.asarray(again))
+
+
+def test_config_validation():
+    model = WorldModelConfig.from_size(OBS, ACT, 1)
+    with pytest.raises(ValueError, match="horizon must be an integer >= 1, got 0"):
+        TDMPC2Config(model=model, horizon=0)
+    with pytest.raises(ValueError, match=r"gamma must be in \(0, 1\], got 1.5"):
+        TDMPC2Config(model=model, gamma=1.5)
