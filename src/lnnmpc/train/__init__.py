@@ -1,0 +1,1 @@
+"""Training: the on-device loop (``loop``) and the command-line trainer (``cli``)."""
