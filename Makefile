@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test lint fmt bench bench-env bench-cells clean
+.PHONY: install train test lint fmt bench bench-env bench-cells clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -13,6 +13,19 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 install: $(STAMP)
+
+# make train TASK=walker-run [AGENT=tdmpc2] [SEEDS=1] [STEPS=200000] [ENVS=1] [OBS="noise=0.1"] [EVAL_OBS=...]
+TASK     ?= walker-run
+AGENT    ?= tdmpc2
+SEEDS    ?= 1
+STEPS    ?= 200000
+ENVS     ?= 1
+OBS      ?=
+EVAL_OBS ?= $(OBS)
+TRAIN_ARGS ?=
+train: $(STAMP)
+	$(PY) -m lnnmpc.train.cli --task $(TASK) --agent $(AGENT) --seeds $(SEEDS) --steps $(STEPS) --envs $(ENVS) \
+		--obs "$(OBS)" --eval-obs "$(EVAL_OBS)" $(TRAIN_ARGS)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks experiments

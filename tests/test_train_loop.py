@@ -42,17 +42,37 @@ def test_seed_phase_fills_replay_with_whole_episodes(loop):
     assert np.all(np.asarray(ts.replay.fields["reward"])[:, 500] == 0)
 
 
-def test_updates_and_training_chunk_run_and_learn(loop):
-    init = jax.jit(jax.vmap(loop.init))
-    seed = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
-    burst = jax.jit(jax.vmap(loop.update_burst, in_axes=(0, None)), static_argnums=1)
-    train = jax.jit(jax.vmap(loop.train_chunk, in_axes=(0, None)), static_argnums=1)
-    ts, _ = seed(init(jax.random.split(jax.random.key(1), 2)), 300)
-    ts, metrics = burst(ts, 60)
-    reward_loss = np.asarray(metrics["reward_loss"])  # (seeds, updates)
-    assert np.all(reward_loss[:, -10:].mean(1) < reward_loss[:, :5].mean(1) - 0.2)
-    ts, out = train(ts, 20)
-    assert np.asarray(ts.agent.updates).tolist() == [60 + 40, 60 + 40]  # num_envs updates per iteration
-    assert all(np.all(np.isfinite(np.asarray(v))) for k, v in out.items() if k != "episode_return")
-    returns = jax.jit(jax.vmap(loop.evaluate))(ts.agent, jax.random.split(jax.random.key(2), 2))
-    assert returns.shape == (2, 2) and np.all(np.isfinite(np.asarray(returns)))
+def test_make_train_smoke_run_writes_a_run_folder(tmp_path):
+    """The trainer end to end at CI size: seed phase, update burst, training chunks, evaluations, files."""
+    import csv
+
+    from lnnmpc.train.cli import main
+
+    run = tmp_path / "run"
+    main(["--task", "cartpole-balance", "--small", "--model-size", "1", "--steps", "1400", "--seed-steps", "400",
+          "--eval-every", "1000", "--eval-episodes", "2", "--batch-size", "16", "--out", str(run)])
+    assert {"config.json", "train.csv", "eval.csv", "curve.png"} <= {p.name for p in run.iterdir()}
+    with open(run / "eval.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert rows and set(rows[0]) == {"env_step", "seed", "episode", "return"}
+    assert {int(r["episode"]) for r in rows} == {0, 1}
+    assert all(0 <= float(r["return"]) <= 1000 for r in rows)
+    with open(run / "train.csv") as f:
+        train_rows = list(csv.DictReader(f))
+    assert all(np.isfinite(float(r["total_loss"])) for r in train_rows)
+    assert max(int(r["env_step"]) for r in rows) >= 1400
+
+
+def test_cli_parses_options_and_rejects_bad_input():
+    from lnnmpc.train.cli import build, build_parser, parse_obs
+
+    assert parse_obs("noise=0.1, flicker=0.2,delay=3,remove_vel=1") == {
+        "obs_noise": 0.1, "flicker": 0.2, "delay": 3, "remove_vel": True}
+    assert parse_obs("") == {}
+    with pytest.raises(ValueError, match="bad observation option 'blur=1'"):
+        parse_obs("blur=1")
+    parser = build_parser()
+    with pytest.raises(ValueError, match="unknown task 'walker-fly'"):
+        build(parser.parse_args(["--task", "walker-fly"]))
+    with pytest.raises(ValueError, match="--seeds must be >= 1, got 0"):
+        build(parser.parse_args(["--task", "walker-run", "--seeds", "0"]))
