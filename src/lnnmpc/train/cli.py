@@ -124,7 +124,12 @@ def _append_csv(path: str, rows: list[dict]) -> None:
 
 
 def plot_curve(run: str) -> None:
-    import matplotlib
+    """Writes curve.png (mean ± std of the evaluation return over seeds and episodes); skipped without matplotlib."""
+    try:
+        import matplotlib
+    except ImportError:
+        sys.stderr.write("matplotlib is not installed: skipping curve.png\n")
+        return
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
