@@ -49,8 +49,10 @@ def test_make_train_smoke_run_writes_a_run_folder(tmp_path):
     from lnnmpc.train.cli import main
 
     run = tmp_path / "run"
-    main(["--task", "cartpole-balance", "--small", "--model-size", "1", "--steps", "1400", "--seed-steps", "400",
-          "--eval-every", "1000", "--eval-episodes", "2", "--batch-size", "16", "--out", str(run)])
+    args = ["--task", "cartpole-balance", "--small", "--model-size", "1", "--steps", "1400", "--seed-steps", "400",
+            "--eval-every", "1000", "--eval-episodes", "2", "--batch-size", "16", "--out", str(run)]
+    main(args)
+    assert (run / "checkpoints").is_dir()
     assert {"config.json", "train.csv", "eval.csv", "curve.png"} <= {p.name for p in run.iterdir()}
     with open(run / "eval.csv") as f:
         rows = list(csv.DictReader(f))
@@ -61,6 +63,27 @@ def test_make_train_smoke_run_writes_a_run_folder(tmp_path):
         train_rows = list(csv.DictReader(f))
     assert all(np.isfinite(float(r["total_loss"])) for r in train_rows)
     assert max(int(r["env_step"]) for r in rows) >= 1400
+    # Running the same command again resumes from the last checkpoint: nothing left to do, files unchanged.
+    before = (run / "eval.csv").read_text()
+    main(args)
+    assert (run / "eval.csv").read_text() == before
+    with pytest.raises(SystemExit, match="holds a run with other settings \\(seed\\)"):
+        main(args + ["--seed", "3"])
+
+
+def test_checkpoint_round_trip_of_a_train_state(loop, tmp_path):
+    from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
+
+    ts = jax.jit(loop.init)(jax.random.key(9))
+    save_checkpoint(str(tmp_path), 7, ts, {"env_steps": 7})
+    assert latest_step(str(tmp_path)) == 7
+    like = jax.jit(loop.init)(jax.random.key(10))
+    restored, host = restore_checkpoint(str(tmp_path), 7, like)
+    assert host == {"env_steps": 7}
+    for a, b in zip(jax.tree_util.tree_leaves(ts), jax.tree_util.tree_leaves(restored), strict=True):
+        if jax.numpy.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_cli_parses_options_and_rejects_bad_input():

@@ -4,7 +4,11 @@
 
 Run folder (``runs/<task>-<agent>-<time>`` unless ``--out``): ``config.json`` (resolved settings),
 ``train.csv`` (env_step, seed, episode returns and losses per chunk), ``eval.csv`` (env_step, seed, episode,
-return) and ``curve.png``. Environment steps count dm_control steps (action repeat included), as SPEC §1.
+return), ``curve.png`` and ``checkpoints/`` (the whole training state after every evaluation). Environment steps
+count dm_control steps (action repeat included), as SPEC §1.
+
+Resume: run the same command with the same ``--out`` again (``--steps`` may be larger); training continues
+exactly from the newest checkpoint, and CSV rows written after it are dropped.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import sys
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc import envs
@@ -26,6 +31,7 @@ from lnnmpc.agents.mppi import MPPIConfig
 from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config
 from lnnmpc.agents.tdmpc2_model import WorldModelConfig
 from lnnmpc.replay import replay_capacity_for
+from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 
 AGENTS = ("tdmpc2",)
@@ -63,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--physics", default="fast", choices=envs.PROFILES)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--small", action="store_true", help="tiny networks and planner (CPU smoke runs)")
-    p.add_argument("--out", default=None, help="run folder")
+    p.add_argument("--out", default=None, help="run folder (an existing one with checkpoints is resumed)")
+    p.add_argument("--replay-capacity", type=int, default=None, help="slots per environment (default: from --steps)")
     return p
 
 
@@ -88,7 +95,8 @@ def build(args):
     planner = MPPIConfig(num_samples=64, num_policy_trajectories=8, num_elites=8, iterations=2) if args.small \
         else MPPIConfig()
     agent = TDMPC2(TDMPC2Config(model=model, planner=planner))
-    capacity = replay_capacity_for(args.steps, env.action_repeat, args.envs) + 2 * (env.episode_length + 1)
+    capacity = args.replay_capacity or (
+        replay_capacity_for(args.steps, env.action_repeat, args.envs) + 2 * (env.episode_length + 1))
     loop = TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=args.envs, batch_size=args.batch_size,
                                                          replay_capacity=capacity,
                                                          eval_episodes=args.eval_episodes))
@@ -110,6 +118,25 @@ class Progress:
         sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done:>9,}/{self.total:,} env steps  "
                          f"{done / max(elapsed, 1e-9):8.0f} steps/s  last eval {self.last_eval:7.1f}")
         sys.stderr.flush()
+
+
+def _truncate_csv(path: str, max_env_step: int) -> None:
+    """Drops rows written after a checkpoint (env_step > max_env_step), atomically."""
+    if not os.path.exists(path):
+        return
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        fields, rows = reader.fieldnames, [r for r in reader if int(r["env_step"]) <= max_env_step]
+    tmp = f"{path}.tmp"
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)
+
+
+def _resumable_args(args: argparse.Namespace) -> dict:
+    return {k: v for k, v in vars(args).items() if k not in ("steps", "out")}
 
 
 def _append_csv(path: str, rows: list[dict]) -> None:
@@ -154,6 +181,14 @@ def train(args: argparse.Namespace) -> str:
     loop, config = build(args)
     run = args.out or os.path.join("runs", f"{args.task}-{args.agent}-{time.strftime('%Y%m%d-%H%M%S')}")
     os.makedirs(run, exist_ok=True)
+    resume_step = latest_step(run)
+    if resume_step is not None:
+        with open(os.path.join(run, "config.json")) as f:
+            saved = json.load(f)["args"]
+        saved_args = {k: v for k, v in saved.items() if k not in ("steps", "out")}
+        if saved_args != _resumable_args(args):
+            changed = sorted(k for k in saved_args if saved_args[k] != _resumable_args(args).get(k))
+            raise ValueError(f"{run} holds a run with other settings ({', '.join(changed)}); use another --out")
     with open(os.path.join(run, "config.json"), "w") as f:
         json.dump(config, f, indent=2, default=str)
     seeds, per_iteration = args.seeds, args.envs * loop.env.action_repeat
@@ -163,6 +198,19 @@ def train(args: argparse.Namespace) -> str:
     ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(args.seed), seeds))
     progress, env_steps, next_eval, last_eval = Progress(args.steps), 0, args.eval_every, -1
     eval_key = jax.random.key(args.seed + 10_000)
+    seeded = False
+    if resume_step is not None:
+        ts, host = restore_checkpoint(run, resume_step, ts)
+        env_steps, next_eval, last_eval, seeded = host["env_steps"], host["next_eval"], host["last_eval"], True
+        eval_key = jax.random.wrap_key_data(jnp.asarray(host["eval_key"], jnp.uint32))
+        for name in ("train.csv", "eval.csv"):
+            _truncate_csv(os.path.join(run, name), env_steps)
+        sys.stderr.write(f"resuming {run} at {env_steps} env steps\n")
+
+    def checkpoint() -> None:
+        host = {"env_steps": env_steps, "next_eval": next_eval, "last_eval": last_eval,
+                "eval_key": np.asarray(jax.random.key_data(eval_key)).tolist()}
+        save_checkpoint(run, env_steps, ts, host)
 
     def account(out) -> list[dict]:
         """Counts environment steps of a chunk and turns finished episodes into train.csv rows."""
@@ -193,7 +241,7 @@ def train(args: argparse.Namespace) -> str:
         plot_curve(run)
 
     seed_iterations = math.ceil(args.seed_steps / per_iteration)
-    if seed_iterations:
+    if seed_iterations and not seeded:
         ts, out = seed_chunk(ts, seed_iterations)
         _append_csv(os.path.join(run, "train.csv"), account(out))
         ts, _ = burst(ts, seed_iterations * args.envs)  # one update per agent step of the seed phase
@@ -205,9 +253,11 @@ def train(args: argparse.Namespace) -> str:
         if env_steps >= next_eval:
             run_eval()
             next_eval += args.eval_every
+            checkpoint()
         progress.show(env_steps)
     if last_eval != env_steps:
         run_eval()
+        checkpoint()
     progress.show(env_steps)
     sys.stderr.write(f"\nrun folder: {run}\n")
     return run
