@@ -135,8 +135,9 @@ def _truncate_csv(path: str, max_env_step: int) -> None:
     os.replace(tmp, path)
 
 
-def _resumable_args(args: argparse.Namespace) -> dict:
-    return {k: v for k, v in vars(args).items() if k not in ("steps", "out")}
+def _resumable_settings(settings: dict) -> dict:
+    """The settings a resumed run must share with its checkpoint (all but --steps and --out)."""
+    return {k: v for k, v in settings.items() if k not in ("steps", "out")}
 
 
 def _append_csv(path: str, rows: list[dict]) -> None:
@@ -185,9 +186,9 @@ def train(args: argparse.Namespace) -> str:
     if resume_step is not None:
         with open(os.path.join(run, "config.json")) as f:
             saved = json.load(f)["args"]
-        saved_args = {k: v for k, v in saved.items() if k not in ("steps", "out")}
-        if saved_args != _resumable_args(args):
-            changed = sorted(k for k in saved_args if saved_args[k] != _resumable_args(args).get(k))
+        saved_args, current = _resumable_settings(saved), _resumable_settings(vars(args))
+        if saved_args != current:
+            changed = sorted(k for k in saved_args.keys() | current.keys() if saved_args.get(k) != current.get(k))
             raise ValueError(f"{run} holds a run with other settings ({', '.join(changed)}); use another --out")
     with open(os.path.join(run, "config.json"), "w") as f:
         json.dump(config, f, indent=2, default=str)
