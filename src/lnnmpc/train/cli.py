@@ -27,14 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc import envs
-from lnnmpc.agents.mppi import MPPIConfig
-from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config
-from lnnmpc.agents.tdmpc2_model import WorldModelConfig
+from lnnmpc.agents.registry import AGENTS, make_agent
 from lnnmpc.replay import replay_capacity_for
 from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 
-AGENTS = ("tdmpc2",)
 OBS_KEYS = {"noise": "obs_noise", "obs_noise": "obs_noise", "flicker": "flicker", "delay": "delay",
             "remove_vel": "remove_vel"}
 
@@ -90,11 +87,8 @@ def build(args):
     obs, eval_obs = parse_obs(args.obs), parse_obs(args.obs if args.eval_obs is None else args.eval_obs)
     env = envs.make(args.task, physics=args.physics, **obs)
     eval_env = envs.make(args.task, physics=args.physics, **eval_obs)
-    overrides = {"enc_dim": 32, "mlp_dim": 32, "latent_dim": 16} if args.small else {}
-    model = WorldModelConfig.from_size(env.observation_size, env.action_size, args.model_size, **overrides)
-    planner = MPPIConfig(num_samples=64, num_policy_trajectories=8, num_elites=8, iterations=2) if args.small \
-        else MPPIConfig()
-    agent = TDMPC2(TDMPC2Config(model=model, planner=planner))
+    agent = make_agent(args.agent, env.observation_size, env.action_size, model_size=args.model_size,
+                       small=args.small)
     capacity = args.replay_capacity or (
         replay_capacity_for(args.steps, env.action_repeat, args.envs) + 2 * (env.episode_length + 1))
     loop = TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=args.envs, batch_size=args.batch_size,
