@@ -191,9 +191,32 @@ class TDMPC2:
                                scale=scale, updates=state.updates + 1)
         return new_state, {**metrics, **pi_metrics}
 
+    # ------------------------------------------------------------ acting protocol (agents/registry.py)
+    @property
+    def sequence_length(self) -> int:
+        """Replay records per training window: H + 1."""
+        return self.config.horizon + 1
+
+    def initial_carry(self) -> jax.Array:
+        """Acting carry of one environment at an episode start: the planner's warm start (plan horizon, A)."""
+        return jnp.zeros((self.config.planner.horizon, self.config.model.action_dim))
+
+    def replay_record(self, obs, action, reward, dt, carry) -> dict:
+        """What replay stores per step: obs (d,), action (A,), reward () (the MLP encoder needs no Δt or state)."""
+        return {"obs": obs, "action": action, "reward": reward}
+
+    def observe(self, state: AgentState, carry, obs, dt, action, *, first_step) -> jax.Array:
+        """Carry after an externally chosen action (seed phase): the warm start stays as it is."""
+        return carry
+
+    def act(self, state: AgentState, carry: jax.Array, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
+            explore: bool, first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Protocol act: MPPI action (A,) for one observation (d,) and the next carry (the plan mean)."""
+        return self.plan(state, obs, carry, key, explore=explore, first_step=first_step)
+
     # ----------------------------------------------------------------------------------------- act
-    def act(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
-            first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def plan(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
+             first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
         """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A))."""
         params, cfg = state.params, self.config
         k_heads, k_plan = jax.random.split(key)

@@ -6,10 +6,18 @@ touches the state between chunks. The schedule (SPEC §1) is driven by the host 
 the seed phase) and :func:`train_chunk` (MPPI with exploration noise, ``num_envs`` updates per iteration so that
 there is one update per agent step).
 
-Replay records: the record at step t holds obs_t, the action a_t and the reward r_t it earned; the final
-observation of an episode is its own record (action 0, reward 0), written on the iteration that resets the
-environment (an iteration that takes no environment step; episodes have a fixed length, so all environments of
-a seed reset together).
+The loop is agent-agnostic: it talks to the agent only through the protocol documented in
+:mod:`lnnmpc.agents.registry` (``init``, ``update``, ``sequence_length``, ``initial_carry``, ``act``,
+``observe``, ``replay_record``). Each environment has an agent-defined *acting carry* (TD-MPC2: the planner's
+warm start; LNN agents: also the encoder state and the previous action); the loop resets it to
+``agent.initial_carry()`` at every episode start, before acting.
+
+Replay records come from ``agent.replay_record(obs_t, a_t, r_t, dt_t, carry_t)`` with ``carry_t`` the carry the
+agent acted from at step t (after the reset): obs_t, the action a_t and the reward r_t it earned, plus whatever
+the agent stores; the final observation of an episode is its own record (action 0, reward 0), written on the
+iteration that resets the environment (an iteration that takes no environment step; episodes have a fixed
+length, so all environments of a seed reset together). Updates sample windows of ``agent.sequence_length``
+records that never cross an episode.
 """
 
 from __future__ import annotations
@@ -22,7 +30,6 @@ import jax.numpy as jnp
 from flax import struct
 
 from lnnmpc import envs as envs_lib
-from lnnmpc.agents.tdmpc2 import TDMPC2, AgentState
 from lnnmpc.replay import ReplayState, replay_add, replay_init, replay_sample
 
 
@@ -44,12 +51,12 @@ class LoopConfig:
 
 @struct.dataclass
 class TrainState:
-    """One seed's training state: agent, replay buffer, environments (num_envs,), planner warm start, RNG."""
+    """One seed's training state: agent, replay buffer, environments (num_envs,), acting carries, RNG."""
 
-    agent: AgentState
+    agent: Any
     replay: ReplayState
     env: Any
-    plan_mean: jax.Array  # (num_envs, horizon, A)
+    carry: Any  # the agent's acting carry, leaves (num_envs, ...)
     episode_return: jax.Array  # (num_envs,) return so far in the current episode
     key: jax.Array
 
@@ -57,53 +64,66 @@ class TrainState:
 class TrainingLoop:
     """Compiled pieces of training for one agent on one environment (vmap them over seeds)."""
 
-    def __init__(self, agent: TDMPC2, env: envs_lib.Env, eval_env: envs_lib.Env, config: LoopConfig):
+    def __init__(self, agent: Any, env: envs_lib.Env, eval_env: envs_lib.Env, config: LoopConfig):
         self.agent, self.env, self.eval_env, self.config = agent, env, eval_env, config
-        self.horizon = agent.config.planner.horizon
+
+    def initial_carries(self, n: int) -> Any:
+        """The agent's initial acting carry stacked for ``n`` environments."""
+        return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), self.agent.initial_carry())
+
+    def _reset_carries(self, carry: Any, first: jax.Array) -> Any:
+        """Carries of environments at their first step (``first`` (n,)) back to the initial carry."""
+        return _where(first, self.initial_carries(first.shape[0]), carry)
 
     # ------------------------------------------------------------------------------------------ init
     def init(self, key: jax.Array) -> TrainState:
         k_agent, k_env, k_loop = jax.random.split(key, 3)
         m, act_dim = self.config.num_envs, self.env.action_size
-        record = {"obs": jnp.zeros((self.env.observation_size,)), "action": jnp.zeros((act_dim,)),
-                  "reward": jnp.zeros(())}
+        record = self.agent.replay_record(jnp.zeros((self.env.observation_size,)), jnp.zeros((act_dim,)),
+                                          jnp.zeros(()), jnp.ones(()), self.agent.initial_carry())
         return TrainState(
             agent=self.agent.init(k_agent), replay=replay_init(record, self.config.replay_capacity, m),
             env=jax.vmap(self.env.reset)(jax.random.split(k_env, m)),
-            plan_mean=jnp.zeros((m, self.horizon, act_dim)), episode_return=jnp.zeros((m,)), key=k_loop)
+            carry=self.initial_carries(m), episode_return=jnp.zeros((m,)), key=k_loop)
 
     # ------------------------------------------------------------------------------------------ steps
-    def _env_step(self, ts: TrainState, action: jax.Array, key: jax.Array):
-        """Records the transition, steps (or resets after the last step of an episode) every environment."""
+    def _env_step(self, ts: TrainState, action: jax.Array, carry: Any, next_carry: Any, key: jax.Array):
+        """Records the transition, steps (or resets after the last step of an episode) every environment.
+
+        ``carry``: the carries the agent acted from (stored in the record); ``next_carry``: the ones it returned.
+        """
         env = ts.env
         terminal = env.done  # (m,)
         action = jnp.where(terminal[:, None], 0.0, action)
         stepped = jax.vmap(self.env.step)(env, action)
         fresh = jax.vmap(self.env.reset)(jax.random.split(key, self.config.num_envs))
         reward = jnp.where(terminal, 0.0, stepped.reward)
-        record = {"obs": env.obs, "action": action, "reward": reward}
+        record = jax.vmap(self.agent.replay_record)(env.obs, action, reward, env.dt, carry)
         replay = replay_add(ts.replay, record, env.t == 0)
-        new_env = jax.tree_util.tree_map(
-            lambda a, b: jnp.where(terminal.reshape(terminal.shape + (1,) * (a.ndim - 1)), a, b), fresh, stepped)
+        new_env = _where(terminal, fresh, stepped)
         finished = jnp.where(terminal, ts.episode_return, jnp.nan)  # returns of episodes that just ended
         episode_return = jnp.where(terminal, 0.0, ts.episode_return + reward)
-        return ts.replace(replay=replay, env=new_env, episode_return=episode_return), {
+        return ts.replace(replay=replay, env=new_env, carry=next_carry, episode_return=episode_return), {
             "reward": reward, "episode_return": finished}
 
     def _update(self, ts: TrainState, key: jax.Array):
         k_sample, k_update = jax.random.split(key)
-        records, valid = replay_sample(ts.replay, k_sample, self.config.batch_size, self.horizon + 1)
+        records, valid = replay_sample(ts.replay, k_sample, self.config.batch_size, self.agent.sequence_length)
         agent, metrics = self.agent.update(ts.agent, records, k_update)
         # Keep the old agent if the buffer had no valid window yet (never after the seed phase).
         agent = jax.tree_util.tree_map(lambda new, old: jnp.where(valid.all(), new, old), agent, ts.agent)
         return ts.replace(agent=agent), metrics
 
     def seed_chunk(self, ts: TrainState, length: int) -> tuple[TrainState, dict]:
-        """``length`` iterations of uniform random actions (no updates)."""
+        """``length`` iterations of uniform random actions (no updates; the agent still observes them)."""
         def body(ts, _):
             key, k_act, k_env = jax.random.split(ts.key, 3)
             action = jax.random.uniform(k_act, (self.config.num_envs, self.env.action_size), minval=-1, maxval=1)
-            return self._env_step(ts.replace(key=key), action, k_env)
+            first = ts.env.t == 0
+            carry = self._reset_carries(ts.carry, first)
+            observe = jax.vmap(lambda c, o, dt, a, f: self.agent.observe(ts.agent, c, o, dt, a, first_step=f))
+            next_carry = observe(carry, ts.env.obs, ts.env.dt, action, first)
+            return self._env_step(ts.replace(key=key), action, carry, next_carry, k_env)
 
         return jax.lax.scan(body, ts, None, length=length)
 
@@ -121,31 +141,36 @@ class TrainingLoop:
 
         def body(ts, _):
             key, k_act, k_env, k_update = jax.random.split(ts.key, 4)
-            act = jax.vmap(lambda obs, mean, k, first: self.agent.act(ts.agent, obs, mean, k, explore=True,
-                                                                      first_step=first))
-            action, plan_mean = act(ts.env.obs, ts.plan_mean, jax.random.split(k_act, m), ts.env.t == 0)
-            ts, out = self._env_step(ts.replace(key=key, plan_mean=plan_mean), action, k_env)
+            first = ts.env.t == 0
+            carry = self._reset_carries(ts.carry, first)
+            act = jax.vmap(lambda c, o, dt, k, f: self.agent.act(ts.agent, c, o, dt, k, explore=True, first_step=f))
+            action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first)
+            ts, out = self._env_step(ts.replace(key=key), action, carry, next_carry, k_env)
             ts, metrics = jax.lax.scan(lambda ts, k: self._update(ts, k), ts, jax.random.split(k_update, m))
             return ts, {**out, **jax.tree_util.tree_map(lambda x: x[-1], metrics)}
 
         return jax.lax.scan(body, ts, None, length=length)
 
     # -------------------------------------------------------------------------------------- evaluate
-    def evaluate(self, agent: AgentState, key: jax.Array) -> jax.Array:
+    def evaluate(self, agent: Any, key: jax.Array) -> jax.Array:
         """Returns (eval_episodes,) of deterministic MPPI episodes, run in parallel, each with its own seed."""
         n, env = self.config.eval_episodes, self.eval_env
         k_reset, k_act = jax.random.split(key)
         state = jax.vmap(env.reset)(jax.random.split(k_reset, n))
-        mean = jnp.zeros((n, self.horizon, env.action_size))
 
-        def body(carry, k):
-            state, mean, total = carry
-            act = jax.vmap(lambda obs, m, kk, first: self.agent.act(agent, obs, m, kk, explore=False,
-                                                                    first_step=first))
-            action, mean = act(state.obs, mean, jax.random.split(k, n), state.t == 0)
+        def body(loop_carry, k):
+            state, carry, total = loop_carry
+            act = jax.vmap(lambda c, o, dt, kk, f: self.agent.act(agent, c, o, dt, kk, explore=False, first_step=f))
+            action, carry = act(carry, state.obs, state.dt, jax.random.split(k, n), state.t == 0)
             state = jax.vmap(env.step)(state, action)
-            return (state, mean, total + state.reward), None
+            return (state, carry, total + state.reward), None
 
         keys = jax.random.split(k_act, env.episode_length)
-        (_, _, total), _ = jax.lax.scan(body, (state, mean, jnp.zeros((n,))), keys)
+        (_, _, total), _ = jax.lax.scan(body, (state, self.initial_carries(n), jnp.zeros((n,))), keys)
         return total
+
+
+def _where(mask: jax.Array, on_true: Any, on_false: Any) -> Any:
+    """Pick leaves of ``on_true`` where ``mask`` (n,) is set, else ``on_false`` (leaves with leading axis n)."""
+    return jax.tree_util.tree_map(
+        lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (jnp.ndim(a) - 1)), a, b), on_true, on_false)

@@ -1,0 +1,89 @@
+"""Hyperparameter overrides by field name for nested frozen agent configs (``--set KEY=VALUE``).
+
+An agent config is a frozen dataclass whose fields are scalars or nested frozen dataclasses (``model``,
+``planner``). Every scalar field, at the top or one level down, is addressed by its bare name; a few nested
+names are renamed (:data:`RENAMED`: the planner's ``horizon`` is ``plan_horizon``, distinct from the training
+``horizon``) and a few are tied to a top-level field of the same name (:data:`TIED`: one ``gamma`` for the
+value targets and the planner). ``obs_dim`` / ``action_dim`` come from the environment and are not overridable.
+Values are converted to the type of the field's current value (strings from a command line included), and the
+configs' own validation runs on the result.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+RENAMED = {("planner", "horizon"): "plan_horizon"}
+TIED = {("planner", "gamma")}
+FIXED = {"obs_dim", "action_dim"}
+_TRUE, _FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
+
+
+def override_paths(config: Any) -> dict[str, list[tuple[str, ...]]]:
+    """Every overridable key of ``config`` and the field paths it sets (``("planner", "horizon")``, ...)."""
+    paths: dict[str, list[tuple[str, ...]]] = {}
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if not dataclasses.is_dataclass(value):
+            paths.setdefault(field.name, []).append((field.name,))
+            continue
+        for sub in dataclasses.fields(value):
+            path = (field.name, sub.name)
+            if sub.name in FIXED or dataclasses.is_dataclass(getattr(value, sub.name)):
+                continue
+            key = RENAMED.get(path, sub.name)
+            if key in paths and path not in TIED:
+                raise AssertionError(f"override key {key!r} is ambiguous: {paths[key]} and {path}")
+            paths.setdefault(key, []).append(path)
+    return paths
+
+
+def convert(key: str, value: Any, like: Any) -> Any:
+    """``value`` (a number, bool or string) as the type of ``like``; ValueError names the key and the value."""
+    kind = type(like)
+    try:
+        if kind is bool:
+            text = str(value).strip().lower()
+            if text not in _TRUE + _FALSE:
+                raise ValueError
+            return text in _TRUE
+        if kind is int:
+            number = float(value)
+            if isinstance(value, bool) or not number.is_integer():
+                raise ValueError
+            return int(number)
+        if kind is float:
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+        if kind is str:
+            return str(value)
+    except (TypeError, ValueError):
+        pass
+    else:
+        raise ValueError(f"{key} cannot be overridden (its value {like!r} is not a number, bool or string)")
+    raise ValueError(f"{key}={value!r} is not a valid {kind.__name__}")
+
+
+def apply_overrides(config: Any, overrides: dict[str, Any] | None) -> Any:
+    """``config`` with ``overrides`` ({key: value}) applied; ValueError on an unknown key lists the allowed ones."""
+    if not overrides:
+        return config
+    paths = override_paths(config)
+    unknown = sorted(set(overrides) - set(paths))
+    if unknown:
+        raise ValueError(f"unknown hyperparameter {', '.join(map(repr, unknown))}; allowed: {', '.join(sorted(paths))}")
+    top: dict[str, Any] = {}
+    nested: dict[str, dict[str, Any]] = {}
+    for key, value in overrides.items():
+        for path in paths[key]:
+            holder = config if len(path) == 1 else getattr(config, path[0])
+            converted = convert(key, value, getattr(holder, path[-1]))
+            if len(path) == 1:
+                top[path[0]] = converted
+            else:
+                nested.setdefault(path[0], {})[path[1]] = converted
+    for name, changes in nested.items():
+        top[name] = dataclasses.replace(getattr(config, name), **changes)
+    return dataclasses.replace(config, **top)
