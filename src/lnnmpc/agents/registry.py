@@ -18,12 +18,14 @@ pure; the loop ``jit``s them, ``vmap``s them over seeds and the per-environment 
 * ``replay_record(obs, action, reward, dt, carry) -> record``: the pytree replay stores for one step, given
   the carry the agent acted from (after the episode-start reset).
 
-Names: ``tdmpc2`` (:mod:`lnnmpc.agents.tdmpc2`). ``overrides`` sets hyperparameters by field name
+Names: ``tdmpc2`` (:mod:`lnnmpc.agents.tdmpc2`) and the eight LNN-TD-MPC2 variants ``{cfc,ltc}-{zp,op}-{det,
+stoch}`` (:mod:`lnnmpc.agents.lnn`). ``overrides`` sets hyperparameters by field name
 (:mod:`lnnmpc.agents.overrides`; e.g. ``{"burn_in": 20, "lambda_": 0.9, "plan_horizon": 5}``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 from lnnmpc.agents.mppi import MPPIConfig
@@ -31,22 +33,36 @@ from lnnmpc.agents.overrides import apply_overrides
 from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config
 from lnnmpc.agents.tdmpc2_model import WorldModelConfig
 
-AGENTS = ("tdmpc2",)
+LNN_AGENTS = tuple(f"{cell}-{objective}-{kind}" for cell in ("cfc", "ltc") for objective in ("zp", "op")
+                   for kind in ("det", "stoch"))
+AGENTS = ("tdmpc2", *LNN_AGENTS)
 
 SMALL_MODEL = {"enc_dim": 32, "mlp_dim": 32, "latent_dim": 16}
 SMALL_PLANNER = {"num_samples": 64, "num_policy_trajectories": 8, "num_elites": 8, "iterations": 2}
+# LNN agents at CPU-smoke-test size: small cell and heads, planning horizon 3, training window 4 + 8 + 1.
+SMALL_LNN = {"hidden_size": 16, "mlp_dim": 32, "backbone_units": 32}
+SMALL_LNN_TRAINING = {"horizon": 8, "burn_in": 4}
 
 
 def make_agent(name: str, obs_dim: int, action_dim: int, *, model_size: int = 5, small: bool = False,
                overrides: dict[str, Any] | None = None):
     """The agent called ``name`` for observations (obs_dim,) and actions (action_dim,).
 
-    ``model_size`` (1 or 5, TD-MPC2's sizes). ``small`` shrinks networks and planner to CPU-smoke-test sizes.
+    ``model_size`` (1 or 5, TD-MPC2's sizes) applies to ``tdmpc2``; LNN agents use the thesis's light
+    configuration (:class:`lnnmpc.agents.lnn.LNNConfig`). ``small`` shrinks networks, planner (and, for LNN
+    agents, the training window) to CPU-smoke-test sizes.
     ``overrides`` (applied last) maps hyperparameter names to values (numbers or strings). Raises ValueError
     naming an unknown agent or key.
     """
     if name not in AGENTS:
         raise ValueError(f"unknown agent {name!r}; known: {', '.join(AGENTS)}")
     planner = MPPIConfig(**SMALL_PLANNER) if small else MPPIConfig()
+    if name in LNN_AGENTS:
+        from lnnmpc.agents.lnn import LNNTDMPC2, lnn_config
+
+        planner = dataclasses.replace(planner, horizon=3 if small else 10)
+        config = lnn_config(name, obs_dim, action_dim, planner, **(SMALL_LNN if small else {}))
+        config = dataclasses.replace(config, **(SMALL_LNN_TRAINING if small else {}))
+        return LNNTDMPC2(apply_overrides(config, overrides))
     model = WorldModelConfig.from_size(obs_dim, action_dim, model_size, **(SMALL_MODEL if small else {}))
     return TDMPC2(apply_overrides(TDMPC2Config(model=model, planner=planner), overrides))

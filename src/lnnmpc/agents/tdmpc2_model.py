@@ -101,6 +101,11 @@ class WorldModel(nn.Module):
         c = self.config
         self.encoder = MLP((c.enc_dim,) * max(c.num_enc_layers - 1, 1), c.latent_dim, c.simnorm_dim)
         self.dynamics = MLP((c.mlp_dim, c.mlp_dim), c.latent_dim, c.simnorm_dim)
+        self.setup_heads()
+
+    def setup_heads(self):
+        """Reward, policy and Q heads (called from ``setup``; subclasses with another encoder reuse it)."""
+        c = self.config
         self.reward_head = MLP((c.mlp_dim, c.mlp_dim), c.num_bins, zero_output=True)
         self.policy_head = MLP((c.mlp_dim, c.mlp_dim), 2 * c.action_dim)
         q_ensemble = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True, "dropout": True},

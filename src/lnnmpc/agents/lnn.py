@@ -1,0 +1,210 @@
+"""LNN-TD-MPC2 (thesis §4.3, Algorithms 1–5): the eight ``{cfc,ltc}-{zp,op}-{det,stoch}`` agents.
+
+TD-MPC2 (:mod:`lnnmpc.agents.tdmpc2`) with its per-observation encoder replaced by a liquid history encoder
+(:mod:`lnnmpc.agents.lnn_model`). Only the world-model loss and acting differ; the update step (model and
+policy optimisers, policy loss on stop-gradient latents with the running Q scale, Polyak target Q) is
+TD-MPC2's, inherited.
+
+Replay record per step t (:meth:`LNNTDMPC2.replay_record`): obs o_t, action a_t, reward r_t, Δt_t, the encoder
+state h_{t−1} the actor held before reading o_t, and a_{t−1} (zeros at an episode start). A training window has
+``burn_in + horizon + 1`` = T + H + 1 records (time-major, never crossing an episode). World-model loss:
+
+* burn-in: from the stored state h_{−1} of the window's first record, the encoder reads records 0..T−1;
+  the resulting state passes through ``stop_gradient`` (no gradient through the burn-in, Algorithm 1 line 2);
+* the encoder then reads records T..T+H with gradients (truncated BPTT): latents z_0..z_H (z = h);
+* prediction (weighted ρ^t, averaged over the H steps, coefficient ``consistency_coef``), from (z_t, a_t):
+  ZP det ‖ẑ_{t+1} − sg(z_{t+1})‖² (mean over dims); ZP stoch the Gaussian NLL of sg(z_{t+1}); OP det
+  ‖ô_{t+1} − o_{t+1}‖²; OP stoch the Gaussian NLL of o_{t+1} with free bits: per step and sample,
+  max(NLL, ``free_bits``). NLLs are in nats per dimension (mean over dims, like the MSEs);
+* reward and Q: TD-MPC2's two-hot soft cross-entropies at z_0..z_{H−1} (the encoder's latents), Q against
+  TD(λ) targets (:func:`lnnmpc.agents.returns.lambda_returns`) with bootstrap values
+  v_{t+1} = min of 2 random Polyak target heads at (sg(z_{t+1}), π(sg(z_{t+1}))).
+
+Acting (:meth:`LNNTDMPC2.act`): the encoder reads [o_t, a_{t−1}] with Δt_t, then MPPI plans from h_t. The
+planner's transition (Algorithm 4 / 5) samples the stochastic predictor: ZP rolls ẑ_{t+1} ~ f(z_t, a_t); OP
+predicts ô_{t+1} ~ f(z_t, a_t) and feeds it through the encoder with Δt = 1, ẑ_{t+1} = φ(z_t, [ô_{t+1}, a_t], 1).
+The planning latent is ``{"z": (N,), "key": (2,) uint32}``; the key drives the predictor's noise (the samples of
+one planning call share it, common random numbers).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from lnnmpc.agents import math as M
+from lnnmpc.agents.lnn_model import LNNModelConfig, LNNWorldModel, make_cell
+from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
+from lnnmpc.agents.returns import lambda_returns
+from lnnmpc.agents.tdmpc2 import TDMPC2, AgentState, TDMPC2Config, make_optimizers
+from lnnmpc.nets import unroll
+from lnnmpc.nets.common import check_int_at_least
+
+
+@dataclasses.dataclass(frozen=True)
+class LNNConfig(TDMPC2Config):
+    """LNN-TD-MPC2 hyper-parameters: TD-MPC2's, with the thesis's changes (H = 32, ρ = 1, planning horizon 10)
+    and burn-in T, TD(λ) and free bits. T = 10 and λ = 0.95 are this project's choice (the thesis gives none)."""
+
+    model: LNNModelConfig
+    planner: MPPIConfig = MPPIConfig(horizon=10)
+    horizon: int = 32
+    rho: float = 1.0
+    burn_in: int = 10
+    lambda_: float = 0.95
+    free_bits: float = -1.0  # floor of the OP-stoch per-step NLL, nats per dimension
+
+    def __post_init__(self):
+        super().__post_init__()
+        check_int_at_least("burn_in", self.burn_in, 0)
+        if not 0 <= self.lambda_ <= 1:
+            raise ValueError(f"lambda_ must be in [0, 1], got {self.lambda_!r}")
+
+
+@struct.dataclass
+class LNNCarry:
+    """Acting carry of one environment: encoder state h_{t−1} (N,), previous action (A,), plan mean (H_plan, A)."""
+
+    h: jax.Array
+    prev_action: jax.Array
+    plan_mean: jax.Array
+
+
+def lnn_config(name: str, obs_dim: int, action_dim: int, planner: MPPIConfig, **model) -> LNNConfig:
+    """Config of the agent ``name`` = ``"{cfc,ltc}-{zp,op}-{det,stoch}"``; ``model`` overrides model fields."""
+    parts = name.split("-")
+    if len(parts) != 3 or parts[2] not in ("det", "stoch"):
+        raise ValueError(f"bad LNN agent name {name!r}; expected {{cfc,ltc}}-{{zp,op}}-{{det,stoch}}")
+    cell, objective, kind = parts
+    return LNNConfig(model=LNNModelConfig(obs_dim, action_dim, cell=cell, objective=objective,
+                                          stochastic=kind == "stoch", **model),
+                     planner=planner)
+
+
+class LNNTDMPC2(TDMPC2):
+    """Pure functions of an LNN-TD-MPC2 agent (build once; all methods jit and vmap over seeds)."""
+
+    def __init__(self, config: LNNConfig):
+        self.config = config
+        self.model = LNNWorldModel(config.model)
+        self.cell = make_cell(config.model)
+        self.model_tx, self.policy_tx = make_optimizers(config)
+
+    # -------------------------------------------------------------------------------------- encoder
+    def encode_sequence(self, params, h0: jax.Array, obs: jax.Array, prev_action: jax.Array,
+                        dt: jax.Array) -> jax.Array:
+        """Encoder states (T, B, N) after each step, from h0 (B, N), obs (T, B, d), prev_action (T, B, A), dt (T, B)."""
+        inputs = jnp.concatenate([obs, prev_action], axis=-1)
+        return unroll(self.cell, {"params": params["encoder"]}, h0, inputs, dt).states
+
+    def latents(self, params, batch: dict) -> jax.Array:
+        """z_0..z_H (H + 1, B, N) of a window: burn-in from the stored state under stop_gradient, then BPTT."""
+        T = self.config.burn_in
+        h = batch["h_prev"][0]
+        if T:
+            h = self.encode_sequence(params, h, batch["obs"][:T], batch["prev_action"][:T], batch["dt"][:T])[-1]
+        h = jax.lax.stop_gradient(h)
+        return self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
+
+    # -------------------------------------------------------------------------------------- losses
+    def prediction_loss(self, params, z: jax.Array, action: jax.Array, target: jax.Array) -> jax.Array:
+        """Per-step prediction loss (H,) of the next latent / observation ``target`` (H, B, D) from (z_t, a_t)."""
+        mean, sigma = self._apply(params, z, action, method="predict")
+        if sigma is None:
+            return jnp.mean((mean - target) ** 2, axis=(1, 2))
+        nll = -M.gaussian_log_prob((target - mean) / sigma, jnp.log(sigma)) / target.shape[-1]  # (H, B)
+        if self.config.model.objective == "op":
+            nll = jnp.maximum(nll, self.config.free_bits)
+        return nll.mean(axis=1)
+
+    def world_model_loss(self, params, target_q, batch, key):
+        """Scalar loss and (stop-gradient latents (H + 1, B, N), metrics) for a window (module docstring)."""
+        cfg, num_bins = self.config, self.config.model.num_bins
+        T, H = cfg.burn_in, cfg.horizon
+        action, reward = batch["action"][T:T + H], batch["reward"][T:T + H]
+        k_pi, k_heads, k_drop = jax.random.split(key, 3)
+        zs = self.latents(params, batch)
+        z, next_z = zs[:-1], jax.lax.stop_gradient(zs[1:])
+        next_action = self._policy_sample(params, next_z, k_pi).action
+        next_q = self._q_values(params, next_z, next_action, self._two_heads(k_heads), q_params=target_q)
+        td_target = jax.lax.stop_gradient(lambda_returns(reward, jnp.min(next_q, axis=0), cfg.gamma, cfg.lambda_))
+
+        target = next_z if cfg.model.objective == "zp" else batch["obs"][T + 1:]
+        weights = M.discounted_weights(H, cfg.rho)
+        prediction = jnp.sum(weights * self.prediction_loss(params, z, action, target)) / H
+        reward_ce = M.soft_cross_entropy(self._apply(params, z, action, method="reward"), reward, num_bins,
+                                         cfg.vmin, cfg.vmax).mean(axis=1)
+        q_logits = self._apply(params, z, action, False, method="q", rngs={"dropout": k_drop})
+        value_ce = M.soft_cross_entropy(q_logits, td_target[None], num_bins, cfg.vmin, cfg.vmax).mean(axis=2)
+        reward_loss = jnp.sum(weights * reward_ce) / H
+        value_loss = jnp.sum(weights * value_ce.sum(axis=0)) / (H * cfg.model.num_q)
+        total = cfg.consistency_coef * prediction + cfg.reward_coef * reward_loss + cfg.value_coef * value_loss
+        metrics = {"prediction_loss": prediction, "reward_loss": reward_loss, "value_loss": value_loss,
+                   "total_loss": total}
+        return total, (jax.lax.stop_gradient(zs), metrics)
+
+    # ------------------------------------------------------------ acting protocol (agents/registry.py)
+    @property
+    def sequence_length(self) -> int:
+        """Replay records per training window: burn-in T + H + 1."""
+        return self.config.burn_in + self.config.horizon + 1
+
+    def initial_carry(self) -> LNNCarry:
+        c = self.config
+        return LNNCarry(h=jnp.zeros((c.model.hidden_size,)), prev_action=jnp.zeros((c.model.action_dim,)),
+                        plan_mean=jnp.zeros((c.planner.horizon, c.model.action_dim)))
+
+    def replay_record(self, obs, action, reward, dt, carry: LNNCarry) -> dict:
+        """obs (d,), action (A,), reward (), dt (), h_prev (N,) = h_{t−1}, prev_action (A,) = a_{t−1}."""
+        return {"obs": obs, "action": action, "reward": reward, "dt": dt, "h_prev": carry.h,
+                "prev_action": carry.prev_action}
+
+    def _start(self, carry: LNNCarry, first_step) -> LNNCarry:
+        first = jnp.asarray(first_step)
+        return jax.tree_util.tree_map(lambda init, x: jnp.where(first, init, x), self.initial_carry(), carry)
+
+    def _encode_one(self, params, carry: LNNCarry, obs, dt) -> jax.Array:
+        """h_t (N,) = φ(h_{t−1}, [o_t, a_{t−1}], Δt_t) for one environment."""
+        return self._apply(params, carry.h[None], obs[None], carry.prev_action[None], jnp.reshape(dt, (1,)),
+                           method="encode_step")[0]
+
+    def observe(self, state: AgentState, carry: LNNCarry, obs, dt, action, *, first_step) -> LNNCarry:
+        """The encoder reads the step; the chosen ``action`` becomes a_{t−1} of the next step."""
+        carry = self._start(carry, first_step)
+        return carry.replace(h=self._encode_one(state.params, carry, obs, dt), prev_action=action)
+
+    def planning_model(self, params, heads: jax.Array) -> PlanningModel:
+        """Per-sample world model for MPPI over latents ``{"z": (N,), "key": (2,) uint32}`` (Algorithms 4, 5)."""
+        cfg = self.config
+
+        def dynamics(latent, a):
+            k_noise, k_next = jax.random.split(jax.random.wrap_key_data(latent["key"]))
+            mean, sigma = self._apply(params, latent["z"], a, method="predict")
+            pred = mean if sigma is None else mean + sigma * jax.random.normal(k_noise, mean.shape, mean.dtype)
+            if cfg.model.objective == "op":  # encode the predicted observation with Δt = 1
+                pred = self._apply(params, latent["z"][None], pred[None], a[None], jnp.ones((1,)),
+                                   method="encode_step")[0]
+            return {"z": pred, "key": jax.random.key_data(k_next)}
+
+        return PlanningModel(
+            dynamics=dynamics,
+            reward=lambda lat, a: M.two_hot_inv(self._apply(params, lat["z"], a, method="reward"),
+                                                cfg.model.num_bins, cfg.vmin, cfg.vmax),
+            value=lambda lat, a: self._q_values(params, lat["z"], a, heads).mean(axis=0),
+            policy=lambda lat, k: self._policy_sample(params, lat["z"], k).action,
+        )
+
+    def act(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
+            explore: bool, first_step: jax.Array) -> tuple[jax.Array, LNNCarry]:
+        """Encode o_t (d,) after Δt_t (), plan with MPPI from h_t; returns (action (A,), next carry)."""
+        params = state.params
+        carry = self._start(carry, first_step)
+        h = self._encode_one(params, carry, obs, dt)
+        k_heads, k_plan, k_model = jax.random.split(key, 3)
+        latent = {"z": h, "key": jax.random.key_data(k_model)}
+        action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params, self._two_heads(k_heads)),
+                                    latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step)
+        return action, LNNCarry(h=h, prev_action=action, plan_mean=mean)

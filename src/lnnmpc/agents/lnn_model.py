@@ -1,0 +1,125 @@
+"""LNN-TD-MPC2's world model in Flax (thesis §4.3): a liquid history encoder plus TD-MPC2's heads.
+
+Components (``h`` the encoder state (B, N), N = ``hidden_size``; ``a`` actions (B, A); ``o`` observations (B, d)):
+
+* encoder φ: a CfC or LTC cell (:mod:`lnnmpc.nets`) over x_t = [o_t, a_{t−1}] with time input Δt_t,
+  ``h_t = φ(h_{t−1}, x_t, Δt_t)``. The latent is the state itself, ``z_t = h_t`` (latent size = LNN hidden
+  size = 64, Table 4.1): no projection and no SimNorm follow the cell. The cells' states are already bounded
+  (CfC default mode: a gated mix of two tanh's, in [−1, 1]; LTC: the semi-implicit Euler update keeps the
+  potentials within the span of the previous state, v_leak and the reversal potentials), and the OP planner
+  (Algorithm 5) must carry the cell state anyway. The LTC runs ``ode_unfolds`` (6) hybrid-Euler sub-steps and
+  reads no output map (``output_mapping="none"``).
+* predictor f: an MLP (``mlp_dim`` × 2, NormedLinear + Mish) on [z, a] predicting the next latent (ZP) or
+  the next observation (OP): deterministic (the prediction) or a diagonal Gaussian (mean, σ) with
+  σ = clip(softplus(raw), min_sigma, max_sigma). Means are unbounded (dm_control observations are).
+* reward, policy and Q heads exactly as TD-MPC2's (:class:`lnnmpc.agents.tdmpc2_model.WorldModel`), on z.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from lnnmpc.agents.tdmpc2_model import MLP, WorldModel
+from lnnmpc.nets import CFC_MODES, CfCCell, LTCCell
+from lnnmpc.nets.common import check_choice, check_fraction, check_int_at_least
+
+CELLS = ("cfc", "ltc")
+OBJECTIVES = ("zp", "op")
+
+
+@dataclasses.dataclass(frozen=True)
+class LNNModelConfig:
+    """Architecture (defaults: the thesis's light configuration, Table 4.1)."""
+
+    obs_dim: int
+    action_dim: int
+    cell: str = "cfc"  # "cfc" or "ltc"
+    objective: str = "zp"  # "zp" (self-predictive) or "op" (observation-predictive)
+    stochastic: bool = False  # Gaussian predictor (NLL) instead of a deterministic one (MSE)
+    hidden_size: int = 64  # LNN hidden size = latent size
+    mlp_dim: int = 192
+    num_q: int = 2
+    num_bins: int = 101
+    q_dropout: float = 0.01
+    cfc_mode: str = "default"
+    backbone_units: int = 128  # CfC backbone width (ncps default)
+    backbone_layers: int = 1
+    ode_unfolds: int = 6  # LTC Euler sub-steps per input step
+    min_sigma: float = 0.05  # bounds of the stochastic predictor's σ
+    max_sigma: float = 5.0
+
+    def __post_init__(self):
+        for name in ("obs_dim", "action_dim", "hidden_size", "mlp_dim", "num_bins", "backbone_units",
+                     "ode_unfolds"):
+            check_int_at_least(name, getattr(self, name), 1)
+        check_int_at_least("backbone_layers", self.backbone_layers, 0)
+        check_int_at_least("num_q", self.num_q, 2)
+        check_choice("cell", self.cell, CELLS)
+        check_choice("objective", self.objective, OBJECTIVES)
+        check_choice("stochastic", self.stochastic, (False, True))
+        check_choice("cfc_mode", self.cfc_mode, CFC_MODES)
+        check_fraction("q_dropout", self.q_dropout)
+        if not 0 < self.min_sigma <= self.max_sigma:
+            raise ValueError(f"need 0 < min_sigma <= max_sigma, got min_sigma={self.min_sigma!r}, "
+                             f"max_sigma={self.max_sigma!r}")
+
+    @property
+    def latent_dim(self) -> int:
+        """Size of the latent z = h."""
+        return self.hidden_size
+
+    @property
+    def target_dim(self) -> int:
+        """Size of what the predictor predicts: the latent (ZP) or the observation (OP)."""
+        return self.hidden_size if self.objective == "zp" else self.obs_dim
+
+
+def make_cell(config: LNNModelConfig) -> nn.Module:
+    """The encoder cell (an unbound module: also used with :func:`lnnmpc.nets.unroll`)."""
+    if config.cell == "cfc":
+        return CfCCell(config.hidden_size, mode=config.cfc_mode, backbone_units=config.backbone_units,
+                       backbone_layers=config.backbone_layers)
+    return LTCCell(config.hidden_size, ode_unfolds=config.ode_unfolds, output_mapping="none")
+
+
+def gaussian_params(raw: jax.Array, min_sigma: float, max_sigma: float) -> tuple[jax.Array, jax.Array]:
+    """(..., 2D) predictor output -> (mean (..., D), σ (..., D)) with σ = clip(softplus(raw), min, max)."""
+    mean, raw_sigma = jnp.split(raw, 2, axis=-1)
+    return mean, jnp.clip(jax.nn.softplus(raw_sigma), min_sigma, max_sigma)
+
+
+class LNNWorldModel(WorldModel):
+    """LNN-TD-MPC2 world model; call its methods with ``model.apply(variables, ..., method=...)``.
+
+    Parameter groups: ``encoder`` (the cell), ``predictor``, and TD-MPC2's ``reward_head``, ``policy_head``,
+    ``q_heads`` (so TD-MPC2's optimiser split applies: encoder learning rate × 0.3, policy head apart).
+    """
+
+    config: LNNModelConfig
+
+    def setup(self):
+        c = self.config
+        self.encoder = make_cell(c)
+        self.predictor = MLP((c.mlp_dim, c.mlp_dim), c.target_dim * (2 if c.stochastic else 1))
+        self.setup_heads()
+
+    def encode_step(self, h: jax.Array, obs: jax.Array, prev_action: jax.Array, dt: jax.Array) -> jax.Array:
+        """One encoder step: h (B, N), obs (B, d), prev_action (B, A), dt (B,) or (B, 1) -> h' (B, N)."""
+        new_h, _ = self.encoder(h, jnp.concatenate([obs, prev_action], axis=-1), dt)
+        return new_h
+
+    def predict(self, z: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array | None]:
+        """(z (..., N), a (..., A)) -> (prediction or mean (..., D), σ (..., D) or None when deterministic)."""
+        out = self.predictor(jnp.concatenate([z, action], axis=-1))
+        if not self.config.stochastic:
+            return out, None
+        return gaussian_params(out, self.config.min_sigma, self.config.max_sigma)
+
+    def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
+        """Touches every component (used by ``init``); obs (d,), action (A,)."""
+        h = self.encode_step(jnp.zeros((1, self.config.hidden_size)), obs[None], action[None], jnp.ones((1,)))[0]
+        return self.predict(h, action), self.reward(h, action), self.policy(h), self.q(h, action)

@@ -1,0 +1,149 @@
+"""LNN-TD-MPC2 agents: configuration and overrides, burn-in isolation, acting encoder, OP planning step."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from lnn_helpers import quick_jit, tiny_agent
+
+from lnnmpc.agents.lnn import LNNTDMPC2
+from lnnmpc.agents.registry import AGENTS, LNN_AGENTS, make_agent
+
+OBS, ACT, B = 5, 2, 8
+
+
+def tiny(name: str, **overrides) -> LNNTDMPC2:
+    return tiny_agent(name, OBS, ACT, **overrides)
+
+
+def window(agent: LNNTDMPC2, seed: int = 0) -> dict:
+    """A random time-major training window of ``agent.sequence_length`` records."""
+    S, N = agent.sequence_length, agent.config.model.hidden_size
+    k = jax.random.split(jax.random.key(seed), 6)
+    action = jnp.tanh(jax.random.normal(k[1], (S, B, ACT)))
+    return {"obs": jax.random.normal(k[0], (S, B, OBS)), "action": action,
+            "reward": jax.random.uniform(k[2], (S, B)), "dt": jax.random.randint(k[3], (S, B), 1, 3) * 1.0,
+            "h_prev": 0.5 * jnp.tanh(jax.random.normal(k[4], (S, B, N))),
+            "prev_action": jnp.concatenate([jnp.zeros((1, B, ACT)), action[:-1]])}
+
+
+def test_light_configuration_defaults():
+    agent = make_agent("cfc-zp-det", OBS, ACT)
+    c = agent.config
+    assert (c.model.hidden_size, c.model.latent_dim, c.model.mlp_dim, c.model.num_q) == (64, 64, 192, 2)
+    assert (c.planner.horizon, c.horizon, c.burn_in, c.lambda_, c.rho) == (10, 32, 10, 0.95, 1.0)
+    assert (c.gamma, c.lr, c.encoder_lr_scale, c.grad_clip_norm, c.tau) == (0.99, 3e-4, 0.3, 20.0, 0.01)
+    assert agent.sequence_length == 43
+    assert set(LNN_AGENTS) == {f"{a}-{b}-{c}" for a in ("cfc", "ltc") for b in ("zp", "op") for c in ("det", "stoch")}
+    assert set(LNN_AGENTS) < set(AGENTS) and "tdmpc2" in AGENTS
+    ltc = make_agent("ltc-op-stoch", OBS, ACT).config.model
+    assert (ltc.cell, ltc.objective, ltc.stochastic, ltc.ode_unfolds) == ("ltc", "op", True, 6)
+
+
+def test_overrides_are_converted_validated_and_listed():
+    agent = make_agent("cfc-op-det", OBS, ACT, overrides={"burn_in": "20", "lambda_": 0.9, "plan_horizon": 5,
+                                                           "gamma": "0.95", "cell": "ltc", "stochastic": "true",
+                                                           "hidden_size": 32.0})
+    c = agent.config
+    assert (c.burn_in, c.lambda_, c.planner.horizon, c.horizon) == (20, 0.9, 5, 32)
+    assert c.gamma == c.planner.gamma == 0.95  # one gamma for targets and planner
+    assert (c.model.cell, c.model.stochastic, c.model.hidden_size) == ("ltc", True, 32)
+    assert agent.initial_carry().plan_mean.shape == (5, ACT)
+    with pytest.raises(ValueError, match=r"unknown hyperparameter 'latent'; allowed: .*burn_in.*plan_horizon"):
+        make_agent("cfc-zp-det", OBS, ACT, overrides={"latent": 3})
+    with pytest.raises(ValueError, match=r"burn_in='x' is not a valid int"):
+        make_agent("cfc-zp-det", OBS, ACT, overrides={"burn_in": "x"})
+    with pytest.raises(ValueError, match=r"burn_in=2.5 is not a valid int"):
+        make_agent("cfc-zp-det", OBS, ACT, overrides={"burn_in": 2.5})
+    with pytest.raises(ValueError, match=r"lambda_ must be in \[0, 1\], got 1.5"):
+        make_agent("cfc-zp-det", OBS, ACT, overrides={"lambda_": 1.5})
+    with pytest.raises(ValueError, match=r"cell='gru' is not supported; allowed values: \['cfc', 'ltc'\]"):
+        make_agent("cfc-zp-det", OBS, ACT, overrides={"cell": "gru"})
+    with pytest.raises(ValueError, match="unknown agent 'cfc-xp-det'"):
+        make_agent("cfc-xp-det", OBS, ACT)
+    tdmpc2 = make_agent("tdmpc2", OBS, ACT, overrides={"plan_horizon": "4", "horizon": 5, "num_q": 3})
+    assert (tdmpc2.config.planner.horizon, tdmpc2.config.horizon, tdmpc2.config.model.num_q) == (4, 5, 3)
+    with pytest.raises(ValueError, match=r"unknown hyperparameter 'burn_in'"):
+        make_agent("tdmpc2", OBS, ACT, overrides={"burn_in": 3})
+
+
+@pytest.fixture(scope="module")
+def zp_agent():
+    agent = tiny("cfc-zp-det")
+    return agent, quick_jit(agent.init)(jax.random.key(0))
+
+
+def test_burn_in_gets_no_gradient(zp_agent):
+    agent, state = zp_agent
+    batch, key, T = window(agent), jax.random.key(1), agent.config.burn_in
+
+    def loss_of(params, batch):
+        return agent.world_model_loss(params, state.target_q, batch, key)[0]
+
+    grad_params, grad_batch = quick_jit(jax.grad(loss_of, argnums=(0, 1)))(state.params, batch)
+    # Nothing before the learning steps gets a gradient: the burn-in inputs and the stored start state.
+    for name in ("obs", "prev_action", "dt"):
+        assert float(jnp.abs(grad_batch[name][:T]).max()) == 0.0, name
+        assert float(jnp.abs(grad_batch[name][T:]).max()) > 0.0, name
+    assert float(jnp.abs(grad_batch["h_prev"]).max()) == 0.0
+    # The parameter gradient equals that of a window starting at the burned-in state with no burn-in at all.
+    h_T = agent.encode_sequence(state.params, batch["h_prev"][0], batch["obs"][:T], batch["prev_action"][:T],
+                                batch["dt"][:T])[-1]
+    no_burn_in = LNNTDMPC2(dataclasses.replace(agent.config, burn_in=0))
+    rest = {k: v[T:] for k, v in batch.items()}
+    rest["h_prev"] = rest["h_prev"].at[0].set(h_T)
+    expected = quick_jit(jax.grad(lambda p: no_burn_in.world_model_loss(p, state.target_q, rest, key)[0]))(
+        state.params)
+    for got, want in zip(jax.tree_util.tree_leaves(grad_params), jax.tree_util.tree_leaves(expected), strict=True):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-4, atol=1e-6)
+    # ... while the burn-in does set the starting state (the loss depends on it).
+    other = {**batch, "obs": batch["obs"].at[:T].add(1.0)}
+    loss = quick_jit(loss_of)
+    assert abs(float(loss(state.params, other)) - float(loss(state.params, batch))) > 1e-4
+
+
+def test_act_encodes_like_the_training_unroll(zp_agent):
+    """The actor's per-step encoder state equals the training-time unroll over the same history."""
+    agent, state = zp_agent
+    batch = window(agent, seed=3)
+    act = quick_jit(lambda c, o, dt, k, f: agent.act(state, c, o, dt, k, explore=True, first_step=f))
+    carry, actions, hs = agent.initial_carry(), [], []
+    for t in range(5):
+        assert np.allclose(carry.prev_action, actions[-1] if actions else 0.0)
+        action, carry = act(carry, batch["obs"][t, 0], batch["dt"][t, 0], jax.random.key(t), jnp.array(t == 0))
+        actions.append(action)
+        hs.append(carry.h)
+    obs, dt = batch["obs"][:5, :1], batch["dt"][:5, :1]
+    prev = jnp.stack([jnp.zeros(ACT)] + actions[:-1])[:, None]
+    states = agent.encode_sequence(state.params, jnp.zeros((1, agent.config.model.hidden_size)), obs, prev, dt)
+    np.testing.assert_allclose(np.stack(hs), np.asarray(states[:, 0]), rtol=1e-5, atol=1e-5)
+    # A first step ignores the carry it is given.
+    again, fresh = act(carry, batch["obs"][0, 0], batch["dt"][0, 0], jax.random.key(0), jnp.array(True))
+    np.testing.assert_allclose(np.asarray(fresh.h), np.asarray(hs[0]), rtol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["cfc-op-det", "ltc-op-stoch"])
+def test_op_planning_step_is_the_encoder_on_the_prediction(name):
+    agent = tiny(name)
+    state = quick_jit(agent.init)(jax.random.key(4))
+    params, N = state.params, agent.config.model.hidden_size
+    z, a = 0.5 * jnp.tanh(jax.random.normal(jax.random.key(5), (N,))), jnp.array([0.3, -0.7])
+    key = jax.random.key_data(jax.random.key(6))
+    model = agent.planning_model(params, jnp.array([0, 1]))
+    stepped = quick_jit(model.dynamics)({"z": z, "key": key}, a)
+
+    apply = lambda *args, method: agent.model.apply({"params": params}, *args, method=method)
+    mean, sigma = apply(z, a, method="predict")
+    k_noise, k_next = jax.random.split(jax.random.wrap_key_data(key))
+    predicted_obs = mean if sigma is None else mean + sigma * jax.random.normal(k_noise, mean.shape)
+    assert predicted_obs.shape == (OBS,)
+    expected = apply(z[None], predicted_obs[None], a[None], jnp.ones((1,)), method="encode_step")[0]
+    np.testing.assert_allclose(np.asarray(stepped["z"]), np.asarray(expected), rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(np.asarray(stepped["key"]), np.asarray(jax.random.key_data(k_next)))
+    if sigma is not None:  # the stochastic transition samples: another key gives another next latent
+        other = model.dynamics({"z": z, "key": jax.random.key_data(jax.random.key(7))}, a)
+        assert float(jnp.abs(other["z"] - stepped["z"]).max()) > 1e-4
