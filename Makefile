@@ -16,7 +16,7 @@ install: $(STAMP)
 
 # make train TASK=walker-run [AGENT=tdmpc2] [SEEDS=1] [STEPS=200000] [ENVS=1] [OBS="noise=0.1"] [EVAL_OBS=...]
 TASK     ?= walker-run
-AGENT    ?= tdmpc2
+AGENT    ?= cfc-zp-det
 SEEDS    ?= 1
 STEPS    ?= 200000
 ENVS     ?= 1
