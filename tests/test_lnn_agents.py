@@ -121,6 +121,13 @@ def test_act_encodes_like_the_training_unroll(zp_agent):
     prev = jnp.stack([jnp.zeros(ACT)] + actions[:-1])[:, None]
     states = agent.encode_sequence(state.params, jnp.zeros((1, agent.config.model.hidden_size)), obs, prev, dt)
     np.testing.assert_allclose(np.stack(hs), np.asarray(states[:, 0]), rtol=1e-5, atol=1e-5)
+    # observe (seed phase: someone else's action) advances the encoder like act and keeps that action.
+    observe = quick_jit(lambda c, o, dt, a, f: agent.observe(state, c, o, dt, a, first_step=f))
+    seen = observe(carry, batch["obs"][5, 0], batch["dt"][5, 0], jnp.array([0.25, -0.5]), jnp.array(False))
+    _, acted = act(carry, batch["obs"][5, 0], batch["dt"][5, 0], jax.random.key(5), jnp.array(False))
+    np.testing.assert_allclose(np.asarray(seen.h), np.asarray(acted.h), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(seen.prev_action), [0.25, -0.5])
+    np.testing.assert_array_equal(np.asarray(seen.plan_mean), np.asarray(carry.plan_mean))
     # A first step ignores the carry it is given.
     again, fresh = act(carry, batch["obs"][0, 0], batch["dt"][0, 0], jax.random.key(0), jnp.array(True))
     np.testing.assert_allclose(np.asarray(fresh.h), np.asarray(hs[0]), rtol=1e-6)
