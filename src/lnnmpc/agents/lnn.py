@@ -85,7 +85,11 @@ def lnn_config(name: str, obs_dim: int, action_dim: int, planner: MPPIConfig, **
 
 
 class LNNTDMPC2(TDMPC2):
-    """Pure functions of an LNN-TD-MPC2 agent (build once; all methods jit and vmap over seeds)."""
+    """Pure functions of an LNN-TD-MPC2 agent (build once; all methods jit and vmap over seeds).
+
+    Acting goes through the protocol's :meth:`act`; the inherited ``plan(state, obs, prev_mean, ...)`` plans from
+    a one-observation history with the mean transition (no encoder carry, no predictor noise).
+    """
 
     def __init__(self, config: LNNConfig):
         self.config = config
@@ -182,12 +186,9 @@ class LNNTDMPC2(TDMPC2):
 
         def dynamics(latent, a):
             k_noise, k_next = jax.random.split(jax.random.wrap_key_data(latent["key"]))
-            mean, sigma = self._apply(params, latent["z"], a, method="predict")
-            pred = mean if sigma is None else mean + sigma * jax.random.normal(k_noise, mean.shape, mean.dtype)
-            if cfg.model.objective == "op":  # encode the predicted observation with Δt = 1
-                pred = self._apply(params, latent["z"][None], pred[None], a[None], jnp.ones((1,)),
-                                   method="encode_step")[0]
-            return {"z": pred, "key": jax.random.key_data(k_next)}
+            noise = jax.random.normal(k_noise, (cfg.model.target_dim,)) if cfg.model.stochastic else None
+            z_next = self._apply(params, latent["z"], a, noise, method="transition")
+            return {"z": z_next, "key": jax.random.key_data(k_next)}
 
         return PlanningModel(
             dynamics=dynamics,

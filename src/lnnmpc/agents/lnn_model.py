@@ -119,6 +119,34 @@ class LNNWorldModel(WorldModel):
             return out, None
         return gaussian_params(out, self.config.min_sigma, self.config.max_sigma)
 
+    def transition(self, z: jax.Array, action: jax.Array, noise: jax.Array | None = None) -> jax.Array:
+        """The planner's transition T(z, a) -> z' (..., N) (Algorithm 4 for ZP, 5 for OP).
+
+        The prediction is the predictor's mean, or ``mean + σ * noise`` when stochastic and ``noise`` (..., D)
+        (standard normal) is given. ZP: z' is the prediction; OP: the predicted observation goes through the
+        encoder with Δt = 1, z' = φ(z, [ô, a], 1).
+        """
+        mean, sigma = self.predict(z, action)
+        pred = mean if sigma is None or noise is None else mean + sigma * noise
+        if self.config.objective == "zp":
+            return pred
+        return self._encode_flat(z, pred, action)
+
+    def encode(self, obs: jax.Array) -> jax.Array:
+        """Latent (..., N) of a one-observation history (zero state, zero previous action, Δt = 1)."""
+        zeros = jnp.zeros((*obs.shape[:-1], self.config.hidden_size), obs.dtype)
+        return self._encode_flat(zeros, obs, jnp.zeros((*obs.shape[:-1], self.config.action_dim), obs.dtype))
+
+    def next(self, z: jax.Array, action: jax.Array) -> jax.Array:
+        """Mean transition (..., N) (TD-MPC2's ``next``; used when planning without the predictor's noise)."""
+        return self.transition(z, action)
+
+    def _encode_flat(self, h: jax.Array, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+        """:meth:`encode_step` with Δt = 1 over any leading axes (..., N)."""
+        flat = lambda x: x.reshape(-1, x.shape[-1])
+        new_h = self.encode_step(flat(h), flat(obs), flat(prev_action), jnp.ones((flat(h).shape[0],), h.dtype))
+        return new_h.reshape(h.shape)
+
     def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
         """Touches every component (used by ``init``); obs (d,), action (A,)."""
         h = self.encode_step(jnp.zeros((1, self.config.hidden_size)), obs[None], action[None], jnp.ones((1,)))[0]
