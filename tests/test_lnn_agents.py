@@ -67,6 +67,11 @@ def test_overrides_are_converted_validated_and_listed():
         make_agent("cfc-xp-det", OBS, ACT)
     tdmpc2 = make_agent("tdmpc2", OBS, ACT, overrides={"plan_horizon": "4", "horizon": 5, "num_q": 3})
     assert (tdmpc2.config.planner.horizon, tdmpc2.config.horizon, tdmpc2.config.model.num_q) == (4, 5, 3)
+    dotted = make_agent("tdmpc2", OBS, ACT, overrides={"planner.horizon": 6, "model.num_q": "4", "planner.gamma": 0.9})
+    assert (dotted.config.planner.horizon, dotted.config.model.num_q, dotted.config.planner.gamma) == (6, 4, 0.9)
+    assert dotted.config.gamma == 0.99  # the section.field spelling sets that one field only
+    with pytest.raises(ValueError, match=r"unknown hyperparameter 'planner.lr'"):
+        make_agent("tdmpc2", OBS, ACT, overrides={"planner.lr": 1.0})
     with pytest.raises(ValueError, match=r"unknown hyperparameter 'burn_in'"):
         make_agent("tdmpc2", OBS, ACT, overrides={"burn_in": 3})
 

@@ -4,7 +4,8 @@ An agent config is a frozen dataclass whose fields are scalars or nested frozen 
 ``planner``). Every scalar field, at the top or one level down, is addressed by its bare name; a few nested
 names are renamed (:data:`RENAMED`: the planner's ``horizon`` is ``plan_horizon``, distinct from the training
 ``horizon``) and a few are tied to a top-level field of the same name (:data:`TIED`: one ``gamma`` for the
-value targets and the planner). ``obs_dim`` / ``action_dim`` come from the environment and are not overridable.
+value targets and the planner). The explicit ``section.field`` spelling (``planner.horizon``, ``model.num_q``)
+addresses exactly that one field. ``obs_dim`` / ``action_dim`` come from the environment and are not overridable.
 Values are converted to the type of the field's current value (strings from a command line included), and the
 configs' own validation runs on the result.
 """
@@ -71,9 +72,12 @@ def apply_overrides(config: Any, overrides: dict[str, Any] | None) -> Any:
     if not overrides:
         return config
     paths = override_paths(config)
+    paths.update({".".join(path): [path] for targets in list(paths.values()) for path in targets if len(path) == 2})
     unknown = sorted(set(overrides) - set(paths))
     if unknown:
-        raise ValueError(f"unknown hyperparameter {', '.join(map(repr, unknown))}; allowed: {', '.join(sorted(paths))}")
+        bare = sorted(key for key in paths if "." not in key)
+        raise ValueError(f"unknown hyperparameter {', '.join(map(repr, unknown))}; allowed: {', '.join(bare)} "
+                         f"(or section.field, e.g. planner.horizon)")
     top: dict[str, Any] = {}
     nested: dict[str, dict[str, Any]] = {}
     for key, value in overrides.items():
