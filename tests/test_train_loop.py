@@ -42,35 +42,6 @@ def test_seed_phase_fills_replay_with_whole_episodes(loop):
     assert np.all(np.asarray(ts.replay.fields["reward"])[:, 500] == 0)
 
 
-def test_make_train_smoke_run_writes_a_run_folder(tmp_path):
-    """The trainer end to end at CI size: seed phase, update burst, training chunks, evaluations, files."""
-    import csv
-
-    from lnnmpc.train.cli import main
-
-    run = tmp_path / "run"
-    args = ["--task", "cartpole-balance", "--small", "--model-size", "1", "--steps", "1400", "--seed-steps", "400",
-            "--eval-every", "1000", "--eval-episodes", "2", "--batch-size", "16", "--out", str(run)]
-    main(args)
-    assert (run / "checkpoints").is_dir()
-    assert {"config.json", "train.csv", "eval.csv", "curve.png"} <= {p.name for p in run.iterdir()}
-    with open(run / "eval.csv") as f:
-        rows = list(csv.DictReader(f))
-    assert rows and set(rows[0]) == {"env_step", "seed", "episode", "return"}
-    assert {int(r["episode"]) for r in rows} == {0, 1}
-    assert all(0 <= float(r["return"]) <= 1000 for r in rows)
-    with open(run / "train.csv") as f:
-        train_rows = list(csv.DictReader(f))
-    assert all(np.isfinite(float(r["total_loss"])) for r in train_rows)
-    assert max(int(r["env_step"]) for r in rows) >= 1400
-    # Running the same command again resumes from the last checkpoint: nothing left to do, files unchanged.
-    before = (run / "eval.csv").read_text()
-    main(args)
-    assert (run / "eval.csv").read_text() == before
-    with pytest.raises(SystemExit, match="holds a run with other settings \\(seed\\)"):
-        main(args + ["--seed", "3"])
-
-
 def test_checkpoint_round_trip_of_a_train_state(loop, tmp_path):
     from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 
@@ -84,18 +55,3 @@ def test_checkpoint_round_trip_of_a_train_state(loop, tmp_path):
         if jax.numpy.issubdtype(a.dtype, jax.dtypes.prng_key):
             a, b = jax.random.key_data(a), jax.random.key_data(b)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-
-
-def test_cli_parses_options_and_rejects_bad_input():
-    from lnnmpc.train.cli import build, build_parser, parse_obs
-
-    assert parse_obs("noise=0.1, flicker=0.2,delay=3,remove_vel=1") == {
-        "obs_noise": 0.1, "flicker": 0.2, "delay": 3, "remove_vel": True}
-    assert parse_obs("") == {}
-    with pytest.raises(ValueError, match="bad observation option 'blur=1'"):
-        parse_obs("blur=1")
-    parser = build_parser()
-    with pytest.raises(ValueError, match="unknown task 'walker-fly'"):
-        build(parser.parse_args(["--task", "walker-fly"]))
-    with pytest.raises(ValueError, match="--seeds must be >= 1, got 0"):
-        build(parser.parse_args(["--task", "walker-run", "--seeds", "0"]))

@@ -1,269 +1,158 @@
-"""``make train``: train an agent on one task for several seeds at once and write a run folder.
+"""Command line of the trainer (the Makefile's ``train``, ``eval``, ``video`` and ``report`` targets call it).
 
-    python -m lnnmpc.train.cli --task walker-run --seeds 4 --steps 200000 --obs "noise=0.1,flicker=0.2"
+    python -m lnnmpc.train.cli train --task walker-run --seeds 4 --steps 200000 --obs "noise=0.1,flicker=0.2"
+    python -m lnnmpc.train.cli train --resume runs/walker-run/tdmpc2/20260101-120000-noise0.1-flicker0.2
+    python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control]
+    python -m lnnmpc.train.cli video RUN [--out episode.gif]
+    python -m lnnmpc.train.cli report RUN            # redraw curve.png and summary.md
 
-Run folder (``runs/<task>-<agent>-<time>`` unless ``--out``): ``config.json`` (resolved settings),
-``train.csv`` (env_step, seed, episode returns and losses per chunk), ``eval.csv`` (env_step, seed, episode,
-return), ``curve.png`` and ``checkpoints/`` (the whole training state after every evaluation). Environment steps
-count dm_control steps (action repeat included), as SPEC §1.
-
-Resume: run the same command with the same ``--out`` again (``--steps`` may be larger); training continues
-exactly from the newest checkpoint, and CSV rows written after it are dropped.
+``train`` without a subcommand name also works (``python -m lnnmpc.train.cli --task ...``). Every option maps to
+a field of :class:`lnnmpc.train.config.TrainConfig`; ``--set KEY=VALUE`` (repeatable) sets agent
+hyperparameters (``make_agent(..., overrides=...)``). Exit status: 0 done, 2 invalid configuration (before
+anything is compiled), 3 training diverged (NaN/Inf), 130 stopped by Ctrl-C after saving a checkpoint.
 """
 
 from __future__ import annotations
 
 import argparse
-import csv
-import dataclasses
-import json
-import math
 import os
 import sys
-import time
-
-import jax
-import jax.numpy as jnp
-import numpy as np
 
 from lnnmpc import envs
-from lnnmpc.agents.registry import AGENTS, make_agent
-from lnnmpc.replay import replay_capacity_for
-from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
-from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.agents.registry import AGENTS
+from lnnmpc.train.config import ConfigError, TrainConfig
 
-OBS_KEYS = {"noise": "obs_noise", "obs_noise": "obs_noise", "flicker": "flicker", "delay": "delay",
-            "remove_vel": "remove_vel"}
+EXIT_CONFIG, EXIT_DIVERGED, EXIT_INTERRUPTED = 2, 3, 130
 
 
-def parse_obs(text: str) -> dict:
-    """"noise=0.1,flicker=0.2,delay=3,remove_vel=1" -> make() options; ValueError names unknown keys."""
-    options = {}
-    for item in filter(None, (part.strip() for part in (text or "").split(","))):
-        key, sep, value = item.partition("=")
-        if not sep or key not in OBS_KEYS:
-            raise ValueError(f"bad observation option {item!r}; use key=value with keys {', '.join(OBS_KEYS)}")
-        name = OBS_KEYS[key]
-        options[name] = (value.lower() in ("1", "true", "yes")) if name == "remove_vel" else (
-            int(value) if name == "delay" else float(value))
-    return options
+def _train_parser(sub) -> None:
+    p = sub.add_parser("train", help="train (or resume) a run", argument_default=argparse.SUPPRESS,
+                       description="Train an agent on one task for several seeds at once; write a run folder.")
+    p.add_argument("--task", help=f"one of: {', '.join(envs.TASKS)}")
+    p.add_argument("--agent", help=f"one of: {', '.join(AGENTS)} (default tdmpc2)")
+    p.add_argument("--seeds", type=int, help="independent seeds trained together (default 1)")
+    p.add_argument("--steps", type=int, help="environment steps per seed (default 200000)")
+    p.add_argument("--envs", type=int, help="environments per seed (default 1)")
+    p.add_argument("--obs", help='training corruptions, e.g. "noise=0.1,flicker=0.2,delay=3,remove_vel=1"')
+    p.add_argument("--eval-obs", help="evaluation corruptions (default: same as --obs)")
+    p.add_argument("--model-size", type=int, help="TD-MPC2 size in millions of parameters: 1 or 5 (default 5)")
+    p.add_argument("--seed-steps", type=int, help="random-action environment steps first (default 5000)")
+    p.add_argument("--eval-every", type=int, help="environment steps between evaluations (default 10000)")
+    p.add_argument("--eval-episodes", type=int, help="evaluation episodes per seed (default 10)")
+    p.add_argument("--checkpoint-every", type=int, help="environment steps between checkpoints (default 10000)")
+    p.add_argument("--keep-checkpoints", type=int, help="newest checkpoints kept (default 3)")
+    p.add_argument("--batch-size", type=int, help="sequences per update (default 256)")
+    p.add_argument("--physics", help=f"one of: {', '.join(envs.PROFILES)} (default fast)")
+    p.add_argument("--seed", type=int, help="master seed (default 0)")
+    p.add_argument("--small", action="store_true", help="tiny networks and planner (CPU smoke runs)")
+    p.add_argument("--replay-capacity", type=int, help="replay slots per environment (default: from --steps)")
+    p.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
+                   help="agent hyperparameter override, repeatable (e.g. --set plan_horizon=5)")
+    p.add_argument("--devices", type=int, help="devices to shard the seeds over (default: all that divide --seeds)")
+    p.add_argument("--runs-dir", help="parent of new run folders (default runs)")
+    p.add_argument("--name", help="run folder suffix (default: the corruption tag, e.g. noise0.1)")
+    p.add_argument("--out", help="exact run folder (an existing one with checkpoints is resumed)")
+    p.add_argument("--resume", help="run folder to continue exactly (its config.json; --steps may extend it)")
+    p.add_argument("--tensorboard", action="store_true", help="also write TensorBoard scalars (tensorboardX)")
+    p.add_argument("--compile-cache", help='XLA compilation cache folder ("" turns it off)')
+
+
+def _eval_parser(sub) -> None:
+    p = sub.add_parser("eval", help="evaluate a run's checkpoint under any corruption, on MJX or dm_control")
+    p.add_argument("run", help="run folder")
+    p.add_argument("--obs", default=None, help="corruptions (default: the run's evaluation corruptions)")
+    p.add_argument("--episodes", type=int, default=10, help="episodes per seed")
+    p.add_argument("--backend", default="mjx", help="mjx or dm_control (the original simulator, CPU)")
+    p.add_argument("--checkpoint", type=int, default=None, help="environment step of a checkpoint (default latest)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default=None, help="CSV path (default <run>/evals/<backend>-<obs>-<step>.csv)")
+
+
+def _video_parser(sub) -> None:
+    p = sub.add_parser("video", help="render one evaluation episode (dm_control, MuJoCo renderer) to MP4/GIF")
+    p.add_argument("run", help="run folder")
+    p.add_argument("--out", default=None, help="video path, .mp4 or .gif (default <run>/videos/<step>.mp4)")
+    p.add_argument("--obs", default=None, help="corruptions (default: the run's evaluation corruptions)")
+    p.add_argument("--checkpoint", type=int, default=None)
+    p.add_argument("--seed-index", type=int, default=0, help="which trained seed's policy")
+    p.add_argument("--episode-seed", type=int, default=0)
+    p.add_argument("--width", type=int, default=320)
+    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--max-steps", type=int, default=None, help="cut the episode after this many agent steps")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--task", required=True, help=f"one of: {', '.join(envs.TASKS)}")
-    p.add_argument("--agent", default="tdmpc2", choices=AGENTS)
-    p.add_argument("--seeds", type=int, default=1, help="independent seeds trained together (vmap)")
-    p.add_argument("--steps", type=int, default=200_000, help="environment steps per seed")
-    p.add_argument("--envs", type=int, default=1, help="environments per seed")
-    p.add_argument("--obs", default="", help='training corruptions, e.g. "noise=0.1,flicker=0.2"')
-    p.add_argument("--eval-obs", default=None, help="evaluation corruptions (default: same as --obs)")
-    p.add_argument("--model-size", type=int, default=5, choices=(1, 5))
-    p.add_argument("--seed-steps", type=int, default=5000, help="environment steps of random actions first")
-    p.add_argument("--eval-every", type=int, default=10_000, help="environment steps between evaluations")
-    p.add_argument("--eval-episodes", type=int, default=10)
-    p.add_argument("--batch-size", type=int, default=256)
-    p.add_argument("--physics", default="fast", choices=envs.PROFILES)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--small", action="store_true", help="tiny networks and planner (CPU smoke runs)")
-    p.add_argument("--out", default=None, help="run folder (an existing one with checkpoints is resumed)")
-    p.add_argument("--replay-capacity", type=int, default=None, help="slots per environment (default: from --steps)")
-    return p
+    parser = argparse.ArgumentParser(prog="python -m lnnmpc.train.cli", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    _train_parser(sub)
+    _eval_parser(sub)
+    _video_parser(sub)
+    sub.add_parser("report", help="redraw curve.png and summary.md").add_argument("run")
+    return parser
 
 
-def _check(args) -> None:
-    if args.task not in envs.TASKS:
-        raise ValueError(f"unknown task {args.task!r}; known: {', '.join(envs.TASKS)}")
-    for name in ("seeds", "steps", "envs", "eval_episodes", "batch_size", "eval_every"):
-        if getattr(args, name) < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.seed_steps < 0:
-        raise ValueError(f"--seed-steps must be >= 0, got {args.seed_steps}")
+def _config_values(args: argparse.Namespace) -> dict:
+    values = {k: v for k, v in vars(args).items() if k not in ("command", "resume")}
+    if "overrides" in values:
+        values["overrides"] = values["overrides"] or []
+    return values
 
 
-def build(args):
-    """(loop, run config dict) from parsed arguments."""
-    _check(args)
-    obs, eval_obs = parse_obs(args.obs), parse_obs(args.obs if args.eval_obs is None else args.eval_obs)
-    env = envs.make(args.task, physics=args.physics, **obs)
-    eval_env = envs.make(args.task, physics=args.physics, **eval_obs)
-    agent = make_agent(args.agent, env.observation_size, env.action_size, model_size=args.model_size,
-                       small=args.small)
-    capacity = args.replay_capacity or (
-        replay_capacity_for(args.steps, env.action_repeat, args.envs) + 2 * (env.episode_length + 1))
-    loop = TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=args.envs, batch_size=args.batch_size,
-                                                         replay_capacity=capacity,
-                                                         eval_episodes=args.eval_episodes))
-    config = {"args": vars(args), "obs": obs, "eval_obs": eval_obs, "agent": dataclasses.asdict(agent.config),
-              "loop": dataclasses.asdict(loop.config), "device": jax.devices()[0].device_kind}
-    return loop, config
+def run_train(args: argparse.Namespace) -> str:
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.trainer import train
+
+    values = _config_values(args)
+    resume = getattr(args, "resume", None)
+    if resume:
+        saved = runfolder.saved_config(resume)
+        steps = values.pop("steps", None)
+        config = TrainConfig.from_dict({**saved.to_dict(), **values}) if values else None
+        return train(config, resume=resume, steps=steps)
+    if "task" not in values:
+        raise ConfigError(f"--task is required (one of: {', '.join(envs.TASKS)}), or --resume RUN")
+    return train(TrainConfig(**values))
 
 
-class Progress:
-    """One-line live progress on stderr: env steps, steps/s, last evaluation."""
+def run_command(args: argparse.Namespace) -> None:
+    if args.command == "train":
+        run_train(args)
+    elif args.command == "eval":
+        from lnnmpc.train.evaluate import evaluate
 
-    def __init__(self, total: int):
-        self.total, self.start, self.last_eval = total, time.perf_counter(), float("nan")
+        evaluate(args.run, obs=args.obs, episodes=args.episodes, backend=args.backend, checkpoint=args.checkpoint,
+                 seed=args.seed, out=args.out)
+    elif args.command == "video":
+        os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen OpenGL without a display; before dm_control loads
+        from lnnmpc.train.video import record
 
-    def show(self, done: int) -> None:
-        elapsed = time.perf_counter() - self.start
-        width = 30
-        filled = int(width * min(done / self.total, 1.0))
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done:>9,}/{self.total:,} env steps  "
-                         f"{done / max(elapsed, 1e-9):8.0f} steps/s  last eval {self.last_eval:7.1f}")
-        sys.stderr.flush()
+        record(args.run, out=args.out, obs=args.obs, checkpoint=args.checkpoint, seed_index=args.seed_index,
+               episode_seed=args.episode_seed, width=args.width, height=args.height, max_steps=args.max_steps)
+    else:
+        from lnnmpc.train.report import write_reports
 
-
-def _truncate_csv(path: str, max_env_step: int) -> None:
-    """Drops rows written after a checkpoint (env_step > max_env_step), atomically."""
-    if not os.path.exists(path):
-        return
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        fields, rows = reader.fieldnames, [r for r in reader if int(r["env_step"]) <= max_env_step]
-    tmp = f"{path}.tmp"
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, path)
+        write_reports(args.run)
+        sys.stdout.write(f"wrote {os.path.join(args.run, 'summary.md')} and curve.png\n")
 
 
-def _resumable_settings(settings: dict) -> dict:
-    """The settings a resumed run must share with its checkpoint (all but --steps and --out)."""
-    return {k: v for k, v in settings.items() if k not in ("steps", "out")}
-
-
-def _append_csv(path: str, rows: list[dict]) -> None:
-    if not rows:
-        return
-    new = not os.path.exists(path)
-    with open(path, "a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        if new:
-            writer.writeheader()
-        writer.writerows(rows)
-
-
-def plot_curve(run: str) -> None:
-    """Writes curve.png (mean ± std of the evaluation return over seeds and episodes); skipped without matplotlib."""
-    try:
-        import matplotlib
-    except ImportError:
-        sys.stderr.write("matplotlib is not installed: skipping curve.png\n")
-        return
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    with open(os.path.join(run, "eval.csv")) as f:
-        rows = list(csv.DictReader(f))
-    steps = sorted({int(r["env_step"]) for r in rows})
-    means = [np.mean([float(r["return"]) for r in rows if int(r["env_step"]) == s]) for s in steps]
-    stds = [np.std([float(r["return"]) for r in rows if int(r["env_step"]) == s]) for s in steps]
-    fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(steps, means)
-    ax.fill_between(steps, np.subtract(means, stds), np.add(means, stds), alpha=0.3)
-    ax.set(xlabel="environment steps", ylabel="evaluation return", title=os.path.basename(run.rstrip("/")))
-    ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(os.path.join(run, "curve.png"), dpi=110)
-    plt.close(fig)
-
-
-def train(args: argparse.Namespace) -> str:
-    """Runs the whole schedule; returns the run folder."""
-    loop, config = build(args)
-    run = args.out or os.path.join("runs", f"{args.task}-{args.agent}-{time.strftime('%Y%m%d-%H%M%S')}")
-    os.makedirs(run, exist_ok=True)
-    resume_step = latest_step(run)
-    if resume_step is not None:
-        with open(os.path.join(run, "config.json")) as f:
-            saved = json.load(f)["args"]
-        saved_args, current = _resumable_settings(saved), _resumable_settings(vars(args))
-        if saved_args != current:
-            changed = sorted(k for k in saved_args.keys() | current.keys() if saved_args.get(k) != current.get(k))
-            raise ValueError(f"{run} holds a run with other settings ({', '.join(changed)}); use another --out")
-    with open(os.path.join(run, "config.json"), "w") as f:
-        json.dump(config, f, indent=2, default=str)
-    seeds, per_iteration = args.seeds, args.envs * loop.env.action_repeat
-    vmapped = lambda fn: jax.jit(jax.vmap(fn, in_axes=(0, None)), static_argnums=1)
-    seed_chunk, burst, train_chunk = vmapped(loop.seed_chunk), vmapped(loop.update_burst), vmapped(loop.train_chunk)
-    evaluate = jax.jit(jax.vmap(loop.evaluate))
-    ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(args.seed), seeds))
-    progress, env_steps, next_eval, last_eval = Progress(args.steps), 0, args.eval_every, -1
-    eval_key = jax.random.key(args.seed + 10_000)
-    seeded = False
-    if resume_step is not None:
-        ts, host = restore_checkpoint(run, resume_step, ts)
-        env_steps, next_eval, last_eval, seeded = host["env_steps"], host["next_eval"], host["last_eval"], True
-        eval_key = jax.random.wrap_key_data(jnp.asarray(host["eval_key"], jnp.uint32))
-        for name in ("train.csv", "eval.csv"):
-            _truncate_csv(os.path.join(run, name), env_steps)
-        sys.stderr.write(f"resuming {run} at {env_steps} env steps\n")
-
-    def checkpoint() -> None:
-        host = {"env_steps": env_steps, "next_eval": next_eval, "last_eval": last_eval,
-                "eval_key": np.asarray(jax.random.key_data(eval_key)).tolist()}
-        save_checkpoint(run, env_steps, ts, host)
-
-    def account(out) -> list[dict]:
-        """Counts environment steps of a chunk and turns finished episodes into train.csv rows."""
-        nonlocal env_steps
-        returns = np.asarray(out["episode_return"])  # (seeds, iterations, envs)
-        terminal = np.isfinite(returns[0, :, 0])
-        rows = []
-        for i in range(returns.shape[1]):
-            if not terminal[i]:
-                env_steps += per_iteration
-                continue
-            for s in range(seeds):
-                row = {"env_step": env_steps, "seed": s, "episode_return": float(np.mean(returns[s, i]))}
-                row.update({k: float(np.asarray(v)[s, i]) for k, v in out.items()
-                            if k not in ("reward", "episode_return")})
-                rows.append(row)
-        return rows
-
-    def run_eval() -> None:
-        nonlocal eval_key, last_eval
-        last_eval = env_steps
-        eval_key, key = jax.random.split(eval_key)
-        returns = np.asarray(evaluate(ts.agent, jax.random.split(key, seeds)))  # (seeds, episodes)
-        _append_csv(os.path.join(run, "eval.csv"), [
-            {"env_step": env_steps, "seed": s, "episode": e, "return": float(returns[s, e])}
-            for s in range(seeds) for e in range(returns.shape[1])])
-        progress.last_eval = float(returns.mean())
-        plot_curve(run)
-
-    seed_iterations = math.ceil(args.seed_steps / per_iteration)
-    if seed_iterations and not seeded:
-        ts, out = seed_chunk(ts, seed_iterations)
-        _append_csv(os.path.join(run, "train.csv"), account(out))
-        ts, _ = burst(ts, seed_iterations * args.envs)  # one update per agent step of the seed phase
-        progress.show(env_steps)
-    chunk = max(1, min(args.eval_every // per_iteration, 1000))
-    while env_steps < args.steps:
-        ts, out = train_chunk(ts, chunk)
-        _append_csv(os.path.join(run, "train.csv"), account(out))
-        if env_steps >= next_eval:
-            run_eval()
-            next_eval += args.eval_every
-            checkpoint()
-        progress.show(env_steps)
-    if last_eval != env_steps:
-        run_eval()
-        checkpoint()
-    progress.show(env_steps)
-    sys.stderr.write(f"\nrun folder: {run}\n")
-    return run
-
-
-def main(argv=None) -> None:
+def main(argv: list[str] | None = None) -> None:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0].startswith("--") and argv[0] not in ("--help", "-h"):
+        argv = ["train", *argv]
     args = build_parser().parse_args(argv)
+    from lnnmpc.train.trainer import TrainingDiverged
+
     try:
-        train(args)
-    except ValueError as error:
-        sys.exit(f"error: {error}")
+        run_command(args)
+    except ConfigError as error:
+        sys.stderr.write(f"error: {error}\n")
+        sys.exit(EXIT_CONFIG)
+    except TrainingDiverged as error:
+        sys.stderr.write(f"\nerror: {error}\n")
+        sys.exit(EXIT_DIVERGED)
+    except KeyboardInterrupt:
+        sys.exit(EXIT_INTERRUPTED)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,151 @@
+"""What a person looks at: the live progress line, ``curve.png``, ``summary.md`` and optional TensorBoard scalars.
+
+Everything here reads the run folder's files (config.json, eval.csv, train.csv), so ``write_reports(run)`` can
+redraw a finished or running run at any time (``python -m lnnmpc.train.cli report RUN``).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+
+import numpy as np
+
+from lnnmpc.train import runfolder
+from lnnmpc.train.checkpoint import all_steps
+from lnnmpc.train.references import references
+
+
+class Progress:
+    """One live line on stderr: a bar, environment steps, steps/s and the last evaluation's mean return."""
+
+    def __init__(self, total: int):
+        self.total, self.start, self.last_eval = total, time.perf_counter(), float("nan")
+        self.first_done: int | None = None
+
+    def show(self, done: int) -> None:
+        if self.first_done is None:  # a resumed run measures speed from where it started
+            self.first_done, self.start = done, time.perf_counter()
+        rate = (done - self.first_done) / max(time.perf_counter() - self.start, 1e-9)
+        width = 30
+        filled = int(width * min(done / self.total, 1.0))
+        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done:>9,}/{self.total:,} env steps  "
+                         f"{rate:8.0f} steps/s  last eval {self.last_eval:7.1f}")
+        sys.stderr.flush()
+
+
+def eval_table(rows: list[dict]) -> list[dict]:
+    """Per evaluation step: mean and std of the return over seeds (of each seed's episode mean; over episodes
+    when there is one seed), min/max over all episodes, and the number of seeds."""
+    table = []
+    for step in sorted({int(r["env_step"]) for r in rows}):
+        at = [r for r in rows if int(r["env_step"]) == step]
+        seeds = sorted({int(r["seed"]) for r in at})
+        per_seed = [np.mean([float(r["return"]) for r in at if int(r["seed"]) == s]) for s in seeds]
+        returns = [float(r["return"]) for r in at]
+        spread = per_seed if len(seeds) > 1 else returns
+        table.append({"env_step": step, "mean": float(np.mean(per_seed)), "std": float(np.std(spread)),
+                      "min": min(returns), "max": max(returns), "seeds": len(seeds)})
+    return table
+
+
+def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str) -> None:
+    """Writes curve.png: mean ± std of the evaluation return against environment steps, reference lines."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [t["env_step"] for t in table]
+    mean, std = np.asarray([t["mean"] for t in table]), np.asarray([t["std"] for t in table])
+    over = "seeds" if table and table[-1]["seeds"] > 1 else "episodes"
+    fig, ax = plt.subplots(figsize=(6.4, 4))
+    ax.plot(steps, mean, marker="o", markersize=3, label=f"this run (mean ± std over {over})")
+    ax.fill_between(steps, mean - std, mean + std, alpha=0.25)
+    for (label, value), style in zip(refs.items(), ("--", ":"), strict=False):
+        ax.axhline(value, linestyle=style, color="gray" if style == "--" else "black", linewidth=1,
+                   label=f"{label}: {value:.0f}")
+    ax.set(xlabel="environment steps", ylabel="evaluation return", title=title, ylim=(0, 1000))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(os.path.join(run, "curve.png"), dpi=110)
+    plt.close(fig)
+
+
+def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, float], extra: dict) -> str:
+    """The one-screen summary.md of a run."""
+    c = config["config"]
+    obs = ", ".join(f"{k}={v}" for k, v in c["obs"].items()) or "none"
+    eval_obs = ", ".join(f"{k}={v}" for k, v in c["eval_obs"].items()) or "none"
+    done = table[-1]["env_step"] if table else 0
+    lines = [f"# {c['task']} · {c['agent']} · {c['seeds']} seed(s)", "",
+             f"Run folder `{run}`; settings in `config.json`, returns in `eval.csv`, losses in `train.csv`, "
+             "plot `curve.png`.", "",
+             "| setting | value |", "|---|---|",
+             f"| environment steps | {done:,} of {c['steps']:,} (seed phase {c['seed_steps']:,}) |",
+             f"| training corruptions | {obs} |", f"| evaluation corruptions | {eval_obs} |",
+             f"| agent | {c['agent']} (model size {c['model_size']}M{', small' if c['small'] else ''}"
+             f"{', overrides ' + str(c['overrides']) if c['overrides'] else ''}) |",
+             f"| physics, envs per seed | {c['physics']}, {c['envs']} |",
+             f"| devices | {config.get('num_devices', 1)} × {(config.get('devices') or ['?'])[0]} |", ""]
+    if table:
+        last, best = table[-1], max(table, key=lambda t: t["mean"])
+        lines += [f"**Final return {last['mean']:.1f} ± {last['std']:.1f}** at {last['env_step']:,} env steps "
+                  f"(best {best['mean']:.1f} at {best['env_step']:,}).", "",
+                  "| env step | mean | std | min | max |", "|---:|---:|---:|---:|---:|"]
+        lines += [f"| {t['env_step']:,} | {t['mean']:.1f} | {t['std']:.1f} | {t['min']:.1f} | {t['max']:.1f} |"
+                  for t in table[-6:]]
+        lines.append("")
+    if refs:
+        lines += ["Published: " + "; ".join(f"{k} {v:.1f}" for k, v in refs.items()) + " (thesis Tables 5.3–5.6)."]
+    steps = all_steps(run)
+    lines.append(f"Checkpoints: {', '.join(f'{s:,}' for s in steps) or 'none'}; resume or extend with "
+                 f"`make train RESUME={run} STEPS=...`.")
+    if extra.get("train_seconds"):
+        lines.append(f"Training time (this machine, incl. compilation): {extra['train_seconds'] / 60:.1f} min.")
+    return "\n".join(lines) + "\n"
+
+
+def write_reports(run: str, extra: dict | None = None) -> None:
+    """(Re)writes curve.png (if matplotlib is installed) and summary.md from the run folder's files."""
+    config = runfolder.read_config(run)
+    c = config["config"]
+    table = eval_table(runfolder.read_csv(os.path.join(run, "eval.csv")))
+    refs = references(c["task"], c["agent"], c["eval_obs"])
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        sys.stderr.write("matplotlib is not installed: no curve.png\n")
+    else:
+        if table:
+            plot_curve(run, table, refs, f"{c['task']} · {c['agent']}")
+    with open(os.path.join(run, "summary.md"), "w") as f:
+        f.write(summary_text(run, config, table, refs, extra or {}))
+
+
+class ScalarLogger:
+    """TensorBoard scalars under ``<run>/tensorboard`` (needs ``tensorboardX``; written locally, no network)."""
+
+    def __init__(self, run: str):
+        try:
+            from tensorboardX import SummaryWriter
+        except ImportError:
+            raise RuntimeError("tensorboard=True needs the tensorboardX package: pip install tensorboardX") from None
+        self.writer = SummaryWriter(os.path.join(run, "tensorboard"))
+
+    def train_rows(self, rows: list[dict]) -> None:
+        for row in rows:
+            for key, value in row.items():
+                if key not in ("env_step", "seed"):
+                    self.writer.add_scalar(f"train/{key}/seed{row['seed']}", value, row["env_step"])
+
+    def eval_rows(self, rows: list[dict]) -> None:
+        if rows:
+            returns = [r["return"] for r in rows]
+            self.writer.add_scalar("eval/return_mean", float(np.mean(returns)), rows[0]["env_step"])
+            self.writer.add_scalar("eval/return_std", float(np.std(returns)), rows[0]["env_step"])
+
+    def close(self) -> None:
+        self.writer.close()

@@ -1,0 +1,101 @@
+"""Run folders: naming, the saved configuration and the CSV logs.
+
+A run folder holds ``config.json`` (the resolved :class:`TrainConfig` plus derived settings), ``train.csv``,
+``eval.csv``, ``checkpoints/``, ``curve.png`` and ``summary.md``. CSV files are appended to after every chunk and
+truncated back to a checkpoint's environment step when a run resumes, so that they always describe exactly the
+training that the newest checkpoint continues.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import tempfile
+import time
+
+from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag
+
+CONFIG_FILE = "config.json"
+
+
+def new_run_path(config: TrainConfig) -> str:
+    """``out``, or ``<runs_dir>/<task>/<agent>/<timestamp>-<name>`` (name: the corruption tag by default)."""
+    if config.out:
+        return config.out
+    name = config.name or obs_tag(config.obs)
+    return os.path.join(config.runs_dir, config.task, config.agent, f"{time.strftime('%Y%m%d-%H%M%S')}-{name}")
+
+
+def ensure_writable(folder: str) -> None:
+    """Creates ``folder`` and checks that a file can be written there (ConfigError naming it otherwise)."""
+    try:
+        os.makedirs(folder, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-test-"):
+            pass
+    except OSError as error:
+        raise ConfigError(f"output folder {folder!r} is not writable: {error.strerror or error}") from None
+
+
+def write_config(run: str, config: TrainConfig, derived: dict) -> None:
+    """Writes config.json atomically: ``{"config": TrainConfig fields, **derived}``."""
+    tmp = os.path.join(run, f".{CONFIG_FILE}.tmp")
+    with open(tmp, "w") as f:
+        json.dump({"config": config.to_dict(), **derived}, f, indent=2, default=str)
+    os.replace(tmp, os.path.join(run, CONFIG_FILE))
+
+
+def read_config(run: str) -> dict:
+    """The JSON of a run folder's config.json (ConfigError if the folder is no run folder)."""
+    path = os.path.join(run, CONFIG_FILE)
+    if not os.path.isfile(path):
+        raise ConfigError(f"{run!r} is not a run folder (no {CONFIG_FILE})")
+    with open(path) as f:
+        data = json.load(f)
+    if "config" not in data:
+        raise ConfigError(f"{path} was written by an older trainer (no 'config' entry); start a new run")
+    return data
+
+
+def saved_config(run: str, **changes) -> TrainConfig:
+    """The TrainConfig stored in a run folder, with ``changes`` applied; ``out`` points at the folder."""
+    values = dict(read_config(run)["config"])
+    values.pop("compile_cache", None)  # machine-specific: use this machine's default unless changed
+    return TrainConfig.from_dict(values, out=run, **changes)
+
+
+def append_csv(path: str, rows: list[dict]) -> None:
+    """Appends rows (dicts with the same keys) to a CSV file, writing the header for a new file."""
+    if not rows:
+        return
+    new = not os.path.exists(path)
+    with open(path, "a", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        if new:
+            writer.writeheader()
+        writer.writerows(rows)
+
+
+def read_csv(path: str) -> list[dict]:
+    if not os.path.exists(path):
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def truncate_csv(path: str, max_env_step: int) -> None:
+    """Drops rows with env_step > max_env_step (written after a checkpoint), atomically; -1 drops all."""
+    if not os.path.exists(path):
+        return
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        fields, rows = reader.fieldnames, [r for r in reader if int(r["env_step"]) <= max_env_step]
+    if not rows:
+        os.remove(path)
+        return
+    tmp = f"{path}.tmp"
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    os.replace(tmp, path)

@@ -1,0 +1,62 @@
+"""The seed axis across devices: one program, ``vmap`` over seeds, the seed axis sharded with ``jax.sharding``.
+
+Every array of the training state carries the seed axis first. With several devices, :class:`SeedPlacement` puts
+that axis on a 1-D mesh of the devices (``NamedSharding(mesh, P("seeds"))``) and compiles each piece of the loop
+with that sharding for inputs and outputs, so XLA partitions the one ``vmap``-ed program and every device runs its
+share of the seeds (seeds are independent: no communication except gathering results to the host). With one
+device nothing is sharded and the programs are the plain ``jit(vmap(...))`` ones.
+
+Arrays are always *committed* to their devices (``put``), also with one device: a restored checkpoint is
+committed, and a fresh run must hand the compiled programs the same kind of inputs so that both compile to the
+same programs (and hit the same persistent-cache entries).
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceSharding
+
+from lnnmpc.train.config import ConfigError
+
+
+def device_count_for(seeds: int, available: int, requested: int | None = None) -> int:
+    """Devices to shard ``seeds`` over: ``requested`` (must divide seeds), else the most that divide ``seeds``."""
+    if requested is not None:
+        if requested > available:
+            raise ConfigError(f"devices={requested} but only {available} device(s) exist")
+        if seeds % requested:
+            raise ConfigError(f"seeds={seeds} cannot be split evenly over devices={requested}; "
+                              f"use a divisor of {seeds} not above {available}")
+        return requested
+    return max(d for d in range(1, min(seeds, available) + 1) if seeds % d == 0)
+
+
+class SeedPlacement:
+    """Compiles per-seed functions for a batch of seeds, sharded over ``num_devices`` devices."""
+
+    def __init__(self, num_devices: int):
+        self.num_devices = num_devices
+        if num_devices > 1:
+            mesh = Mesh(np.asarray(jax.devices()[:num_devices]), ("seeds",))
+            self.sharding = NamedSharding(mesh, PartitionSpec("seeds"))
+        else:
+            self.sharding = SingleDeviceSharding(jax.devices()[0])
+
+    def put(self, tree):
+        """Places (commits) a seed-batched pytree (host or device arrays) on the devices."""
+        return jax.device_put(tree, self.sharding)
+
+    def compile(self, fn: Callable, *static, in_axes=0) -> Callable:
+        """``jit(vmap(fn(..., *static)))`` over the seed axis; static arguments are bound, not traced."""
+        batched = jax.vmap(functools.partial(_call_with_static, fn, static), in_axes=in_axes)
+        if self.num_devices == 1:
+            return jax.jit(batched)
+        return jax.jit(batched, in_shardings=self.sharding, out_shardings=self.sharding)
+
+
+def _call_with_static(fn, static, *args):
+    return fn(*args, *static)

@@ -1,0 +1,375 @@
+"""``lnnmpc.train(config)``: the whole training schedule of SPEC §1 for several seeds, with a run folder.
+
+    import lnnmpc
+    run = lnnmpc.train(lnnmpc.TrainConfig(task="cartpole-swingup", seeds=4, steps=100_000, obs="noise=0.1"))
+    run = lnnmpc.train(resume=run, steps=200_000)          # continue (or extend) a run exactly
+
+Order of work: the configuration is validated completely (environments and agent are built, the run folder is
+checked for write access, a resumed checkpoint is checked against the configuration and the state layout)
+before anything is compiled. Then: seed phase, update burst, training chunks; an evaluation every
+``eval_every`` environment steps, a checkpoint every ``checkpoint_every`` (at the first chunk boundary past each
+multiple), at the end, and on Ctrl-C / SIGTERM (after the running chunk; a second Ctrl-C aborts at once).
+Checkpoints hold the whole state and the host's counters, and the chunk schedule depends only on the
+configuration, so a resumed run computes exactly what the uninterrupted run would have.
+
+A NaN or Inf in a loss metric or in the agent's parameters stops the run with :class:`TrainingDiverged` naming the
+environment step, seed and metric; the newest checkpoint (written before the bad chunk) is kept as it is.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+import os
+import re
+import signal
+import sys
+import threading
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lnnmpc import envs
+from lnnmpc.agents.registry import make_agent
+from lnnmpc.replay import replay_capacity_for
+from lnnmpc.train import report, runfolder
+from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
+from lnnmpc.train.config import ConfigError, TrainConfig, incompatibilities
+from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.sharding import SeedPlacement, device_count_for
+
+MAX_CHUNK = 1000  # iterations per compiled training chunk
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss or parameter became NaN/Inf; the message names the environment step, seed and metric."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    """What a validated configuration builds (nothing compiled yet)."""
+
+    config: TrainConfig
+    loop: TrainingLoop
+    run: str
+    resume_step: int | None
+    num_devices: int
+    signature: str
+
+    @property
+    def per_iteration(self) -> int:
+        """Environment steps of one loop iteration (all environments of a seed, action repeat included)."""
+        return self.config.envs * self.loop.env.action_repeat
+
+    @property
+    def chunk(self) -> int:
+        """Iterations per training chunk: fixed by the configuration, so resumed runs chunk identically."""
+        return max(1, min(self.config.eval_every // self.per_iteration, MAX_CHUNK))
+
+
+def build_loop(config: TrainConfig) -> TrainingLoop:
+    """Environments, agent and loop of a configuration (ValueErrors from them become ConfigErrors)."""
+    try:
+        env = envs.make(config.task, physics=config.physics, **config.obs)
+        eval_env = envs.make(config.task, physics=config.physics, **config.eval_obs)
+        if eval_env.observation_size != env.observation_size:
+            raise ConfigError(f"eval_obs {config.eval_obs} changes the observation size "
+                              f"({env.observation_size} -> {eval_env.observation_size}); remove_vel must match")
+        agent = make_agent(config.agent, env.observation_size, env.action_size, model_size=config.model_size,
+                           small=config.small, overrides=config.overrides or None)
+    except ConfigError:
+        raise
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    capacity = config.replay_capacity or (
+        replay_capacity_for(config.steps, env.action_repeat, config.envs) + 2 * (env.episode_length + 1))
+    if capacity < agent.sequence_length + 1:
+        raise ConfigError(f"replay_capacity={capacity} is below the training window ({agent.sequence_length})")
+    return TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=config.envs, batch_size=config.batch_size,
+                                                         replay_capacity=capacity,
+                                                         eval_episodes=config.eval_episodes))
+
+
+def state_signature(loop: TrainingLoop, seeds: int) -> str:
+    """A hash of the training state's layout (tree structure, shapes, dtypes): traced, not compiled."""
+    shapes = jax.eval_shape(jax.vmap(loop.init), jax.random.split(jax.random.key(0), seeds))
+    leaves, treedef = jax.tree_util.tree_flatten(shapes)
+    structure = re.sub(r" at 0x[0-9a-f]+", "", str(treedef))  # object addresses differ between processes
+    text = structure + "".join(f"{x.shape}{x.dtype}" for x in leaves)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None) -> Setup:
+    """Checks everything that can be checked without compiling; returns the :class:`Setup` to train with.
+
+    ``resume``: a run folder to continue (its config.json is used; ``config``, if also given, must be
+    compatible); ``steps`` extends the budget. A ``config.out`` folder that holds checkpoints is resumed too.
+    """
+    if config is None and resume is None:
+        raise ConfigError("give a TrainConfig or a run folder to resume")
+    changes = {} if steps is None else {"steps": steps}
+    config = dataclasses.replace(config or runfolder.saved_config(resume), **changes)
+    if resume is not None:
+        config = dataclasses.replace(config, out=resume)
+    run = runfolder.new_run_path(config)
+    if os.path.exists(os.path.join(run, runfolder.CONFIG_FILE)):
+        saved = runfolder.saved_config(run)
+        if config.replay_capacity is None:  # the buffer keeps its size when a resumed run gets more steps
+            config = dataclasses.replace(config, replay_capacity=saved.replay_capacity)
+        _check_compatible(run, saved, config)
+    elif resume is not None:
+        raise ConfigError(f"{resume!r} is not a run folder (no {runfolder.CONFIG_FILE})")
+    loop = build_loop(config)
+    config = dataclasses.replace(config, replay_capacity=loop.config.replay_capacity)
+    runfolder.ensure_writable(run)
+    if config.tensorboard:
+        try:
+            import tensorboardX  # noqa: F401
+        except ImportError:
+            raise ConfigError("tensorboard=True needs the tensorboardX package (pip install tensorboardX)") from None
+    num_devices = device_count_for(config.seeds, jax.device_count(), config.devices)
+    resume_step = latest_step(run) if os.path.isdir(run) else None
+    signature = state_signature(loop, config.seeds)
+    if resume_step is not None:
+        check_layout(run, signature)
+    return Setup(config=config, loop=loop, run=run, resume_step=resume_step, num_devices=num_devices,
+                 signature=signature)
+
+
+def check_layout(run: str, signature: str) -> None:
+    """Refuses checkpoints whose state layout differs from what this code builds (:func:`state_signature`)."""
+    if runfolder.read_config(run).get("state_signature") != signature:
+        raise ConfigError(f"the checkpoints in {run} hold a training state of another layout than this code "
+                          "builds for the same configuration (the code changed since the run); start a new run")
+
+
+def _check_compatible(run: str, saved: TrainConfig, config: TrainConfig) -> None:
+    problems = incompatibilities(saved, config)
+    if problems:
+        raise ConfigError(f"cannot resume {run} with a changed configuration ({'; '.join(problems)}). Only "
+                          "steps, checkpoint_every, keep_checkpoints, devices, name, runs_dir, tensorboard and "
+                          "compile_cache may change; start a new run for anything else")
+
+
+def enable_compile_cache(folder: str) -> None:
+    """XLA's persistent compilation cache in ``folder`` (a resumed run or an evaluation then skips compiling)."""
+    if folder:
+        os.makedirs(folder, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", folder)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+def train(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None) -> str:
+    """Trains (or resumes, see :func:`validate`) and returns the run folder.
+
+    Raises ConfigError before compiling for a bad configuration, :class:`TrainingDiverged` on NaN/Inf, and
+    KeyboardInterrupt after saving a checkpoint on Ctrl-C.
+    """
+    setup = validate(config, resume=resume, steps=steps)
+    enable_compile_cache(setup.config.compile_cache)
+    return _Run(setup).execute()
+
+
+class _StopRequest:
+    """Turns the first SIGINT/SIGTERM into a flag checked between chunks; a second SIGINT aborts at once."""
+
+    def __init__(self):
+        self.requested, self._previous = None, {}
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._previous[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        self.requested = signal.Signals(signum).name
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        sys.stderr.write(f"\n{self.requested}: saving a checkpoint after the running chunk "
+                         "(Ctrl-C again aborts without saving)\n")
+
+    def __exit__(self, *exc):
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+
+
+class _Run:
+    """Host-side driver of one run (state between chunks, counters, files)."""
+
+    def __init__(self, setup: Setup):
+        self.setup, self.config, self.loop, self.run = setup, setup.config, setup.loop, setup.run
+        self.placement = SeedPlacement(setup.num_devices)
+        compile_ = self.placement.compile
+        self.init = compile_(self.loop.init)
+        self.evaluate = compile_(self.loop.evaluate)
+        self.finite = compile_(_all_finite)
+        self._chunk_fns = {}
+        self.counters = {"env_steps": 0, "next_eval": self.config.eval_every, "last_eval": -1,
+                         "next_checkpoint": self.config.checkpoint_every, "last_checkpoint": -1, "seeded": False,
+                         "eval_key": None, "train_seconds": 0.0}
+        self.progress = report.Progress(self.config.steps)
+        self.logger = report.ScalarLogger(self.run) if self.config.tensorboard else None
+
+    def chunk_fn(self, name: str, length: int):
+        """Compiled ``loop.<name>(ts, length)`` over seeds (cached per length)."""
+        if (name, length) not in self._chunk_fns:
+            self._chunk_fns[name, length] = self.placement.compile(getattr(self.loop, name), length)
+        return self._chunk_fns[name, length]
+
+    # ------------------------------------------------------------------------------------ lifecycle
+    def execute(self) -> str:
+        c = self.config
+        runfolder.write_config(self.run, c, {
+            "state_signature": self.setup.signature, "agent_config": _jsonable(self.loop.agent.config),
+            "loop": dataclasses.asdict(self.loop.config), "devices": [d.device_kind for d in jax.devices()],
+            "num_devices": self.setup.num_devices, "chunk": self.setup.chunk})
+        keys = jax.random.split(jax.random.key(c.seed), c.seeds)
+        self.ts = self.init(self.placement.put(keys))
+        self.counters["eval_key"] = _key_list(jax.random.key(c.seed + 10_000))
+        if self.setup.resume_step is not None:
+            self.ts, self.counters = restore_checkpoint(self.run, self.setup.resume_step, self.ts)
+            sys.stderr.write(f"resuming {self.run} at {self.counters['env_steps']:,} env steps\n")
+        for name in ("train.csv", "eval.csv"):  # rows after the checkpoint (or all, starting afresh) go
+            runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if
+                                   self.setup.resume_step is not None else -1)
+        start = time.perf_counter()
+        with _StopRequest() as stop:
+            try:
+                self._schedule(stop)
+            finally:
+                self.counters["train_seconds"] += time.perf_counter() - start
+                if self.logger:
+                    self.logger.close()
+        report.write_reports(self.run, self.counters)
+        sys.stderr.write(f"\nrun folder: {self.run}\n")
+        return self.run
+
+    def _schedule(self, stop: _StopRequest) -> None:
+        c, n = self.config, self.counters
+        if not n["seeded"]:
+            seed_iterations = math.ceil(c.seed_steps / self.setup.per_iteration)
+            if seed_iterations:
+                ts, out = self.chunk_fn("seed_chunk", seed_iterations)(self.ts)
+                rows = self._account(out)
+                ts, metrics = self.chunk_fn("update_burst", seed_iterations * c.envs)(ts)
+                self._commit(ts, rows, metrics, first_step=None)
+            n["seeded"] = True
+            self._after_chunk()
+        while n["env_steps"] < c.steps:
+            if stop.requested:
+                self._checkpoint()
+                sys.stderr.write(f"\nstopped by {stop.requested} at {n['env_steps']:,} env steps; checkpoint "
+                                 f"saved. Continue with: make train RESUME={self.run}\n")
+                raise KeyboardInterrupt
+            first = n["env_steps"]
+            ts, out = self.chunk_fn("train_chunk", self.setup.chunk)(self.ts)
+            rows = self._account(out)
+            self._commit(ts, rows, out, first_step=first)
+            self._after_chunk()
+        if n["last_eval"] != n["env_steps"]:
+            self._evaluate()
+        if n["last_checkpoint"] != n["env_steps"]:
+            self._checkpoint()
+        self.progress.show(n["env_steps"])
+
+    def _after_chunk(self) -> None:
+        c, n = self.config, self.counters
+        if n["env_steps"] >= n["next_eval"]:
+            self._evaluate()
+            n["next_eval"] += c.eval_every
+        if n["env_steps"] >= n["next_checkpoint"]:
+            self._checkpoint()
+            n["next_checkpoint"] = (n["env_steps"] // c.checkpoint_every + 1) * c.checkpoint_every
+        self.progress.show(n["env_steps"])
+
+    # ---------------------------------------------------------------------------------------- pieces
+    def _account(self, out: dict) -> list[dict]:
+        """Counts the chunk's environment steps; finished episodes become train.csv rows (with the losses)."""
+        returns = np.asarray(out["episode_return"])  # (seeds, iterations, envs), NaN except at episode ends
+        terminal = np.isfinite(returns[0, :, 0])
+        metrics = {k: np.asarray(v) for k, v in out.items() if k not in ("reward", "episode_return")}
+        rows, steps = [], self.counters["env_steps"]
+        for i in range(returns.shape[1]):
+            if not terminal[i]:
+                steps += self.setup.per_iteration
+                continue
+            for s in range(returns.shape[0]):
+                rows.append({"env_step": steps, "seed": s, "episode_return": float(np.mean(returns[s, i])),
+                             **{k: float(v[s, i]) for k, v in metrics.items()}})
+        self.counters["env_steps"] = steps
+        return rows
+
+    def _commit(self, ts, rows: list[dict], metrics: dict, first_step: int | None) -> None:
+        """Accepts a chunk's state after checking losses and parameters for NaN/Inf (``first_step``: env step
+        before the chunk; None for the update burst after the seed phase)."""
+        bad = _first_non_finite(metrics)
+        finite_params = np.asarray(self.finite(ts.agent))
+        if bad is None and not finite_params.all():
+            bad = (int(np.argmin(finite_params)), -1, "agent parameters / optimiser state")
+        if bad is not None:
+            seed, index, metric = bad
+            if index < 0:
+                where = f"the chunk ending at env step {self.counters['env_steps']:,}"
+            elif first_step is None:
+                where = f"update {index + 1} of the burst after the seed phase"
+            else:
+                where = f"env step ~{first_step + (index + 1) * self.setup.per_iteration:,}"
+            kept = latest_step(self.run)
+            raise TrainingDiverged(
+                f"non-finite {metric} (NaN or Inf) at {where}, seed {seed}; training stopped. "
+                + (f"The last good checkpoint ({kept:,} env steps) is kept in {self.run}/checkpoints."
+                   if kept is not None else "No checkpoint had been written yet."))
+        self.ts = ts
+        runfolder.append_csv(os.path.join(self.run, "train.csv"), rows)
+        if self.logger:
+            self.logger.train_rows(rows)
+
+    def _evaluate(self) -> None:
+        n = self.counters
+        eval_key, key = jax.random.split(jax.random.wrap_key_data(jnp.asarray(n["eval_key"], jnp.uint32)))
+        n["eval_key"], n["last_eval"] = _key_list(eval_key), n["env_steps"]
+        keys = self.placement.put(jax.random.split(key, self.config.seeds))
+        returns = np.asarray(self.evaluate(self.ts.agent, keys))  # (seeds, episodes)
+        rows = [{"env_step": n["env_steps"], "seed": s, "episode": e, "return": float(returns[s, e])}
+                for s in range(returns.shape[0]) for e in range(returns.shape[1])]
+        runfolder.append_csv(os.path.join(self.run, "eval.csv"), rows)
+        self.progress.last_eval = float(returns.mean())
+        if self.logger:
+            self.logger.eval_rows(rows)
+        report.write_reports(self.run, self.counters)
+
+    def _checkpoint(self) -> None:
+        n = self.counters
+        n["last_checkpoint"] = n["env_steps"]
+        save_checkpoint(self.run, n["env_steps"], self.ts, dict(n), keep=self.config.keep_checkpoints)
+
+
+def _jsonable(value):
+    return dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
+
+
+def _key_list(key: jax.Array) -> list[int]:
+    return np.asarray(jax.random.key_data(key)).tolist()
+
+
+def _all_finite(tree) -> jax.Array:
+    leaves = [x for x in jax.tree_util.tree_leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
+    return jnp.all(jnp.asarray([jnp.all(jnp.isfinite(x)) for x in leaves]))
+
+
+def _first_non_finite(metrics: dict) -> tuple[int, int, str] | None:
+    """(seed, iteration, metric) of the first NaN/Inf among per-iteration metrics (seeds, iterations), or None."""
+    first = None
+    for name, values in metrics.items():
+        if name in ("reward", "episode_return"):
+            continue
+        values = np.asarray(values)
+        bad = ~np.isfinite(values.reshape(values.shape[0], values.shape[1], -1)).all(axis=2)
+        if bad.any():
+            seed, index = np.argwhere(bad)[np.argmin(np.argwhere(bad)[:, 1])]
+            if first is None or index < first[1]:
+                first = (int(seed), int(index), name)
+    return first

@@ -1,0 +1,133 @@
+"""Validation of the trainer's configuration before anything compiles: every error names the bad value and the
+allowed ones; the CLI exits non-zero with the message; resuming with an incompatible configuration is refused."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import pytest
+
+from lnnmpc.train import runfolder
+from lnnmpc.train.config import ConfigError, TrainConfig, incompatibilities, obs_tag, parse_obs, parse_overrides
+from lnnmpc.train.references import references, variant
+from lnnmpc.train.sharding import device_count_for
+from lnnmpc.train.trainer import _first_non_finite, validate
+
+
+def test_parse_obs_and_overrides():
+    assert parse_obs("noise=0.1, flicker=0.2,delay=3,remove_vel=1") == {
+        "obs_noise": 0.1, "flicker": 0.2, "delay": 3, "remove_vel": True}
+    assert parse_obs("") == {} and parse_obs({"obs_noise": 0.3}) == {"obs_noise": 0.3}
+    assert obs_tag(parse_obs("noise=0.1,flicker=0.2")) == "flicker0.2-noise0.1" and obs_tag({}) == "clean"
+    assert parse_overrides(["plan_horizon=5", "lr=1e-3", "mode=pure"]) == {
+        "plan_horizon": 5, "lr": 0.001, "mode": "pure"}
+
+
+@pytest.mark.parametrize("values, message", [
+    ({"task": "walker-fly"}, "unknown task 'walker-fly'; known: cartpole-balance, "),
+    ({"agent": "gru"}, "unknown agent 'gru'; known: tdmpc2"),
+    ({"physics": "slow"}, "unknown physics profile 'slow'; known: "),
+    ({"model_size": 3}, "model_size must be 1 or 5 (million parameters), got 3"),
+    ({"seeds": 0}, "seeds must be an integer >= 1, got 0"),
+    ({"steps": 1.5}, "steps must be an integer >= 1, got 1.5"),
+    ({"seed_steps": -1}, "seed_steps must be an integer >= 0, got -1"),
+    ({"eval_episodes": 0}, "eval_episodes must be an integer >= 1, got 0"),
+    ({"checkpoint_every": 0}, "checkpoint_every must be an integer >= 1, got 0"),
+    ({"steps": 1000, "seed_steps": 5000}, "steps (1000) must be >= seed_steps (5000)"),
+    ({"obs": "blur=1"}, "bad observation option 'blur'; known: noise, obs_noise, flicker, delay, remove_vel"),
+    ({"obs": "noise"}, "bad observation option 'noise'; use key=value"),
+    ({"obs": "noise=-0.1"}, "obs_noise must be >= 0"),
+    ({"obs": "delay=1.5"}, "delay='1.5' is not an integer"),
+    ({"eval_obs": "remove_vel=maybe"}, "remove_vel='maybe': use one of 1, true"),
+    ({"overrides": ["horizon"]}, "bad --set 'horizon'; use KEY=VALUE"),
+    ({"name": "a/b"}, "run name 'a/b' must not contain '/'"),
+])
+def test_bad_values_are_named_with_the_allowed_ones(values, message):
+    with pytest.raises(ConfigError) as error:
+        TrainConfig(**{"task": "cartpole-balance", **values})
+    assert message in str(error.value)
+
+
+def test_validation_builds_environments_and_agent_without_compiling(tmp_path):
+    small = {"task": "cartpole-balance", "small": True, "out": str(tmp_path / "run")}
+    with pytest.raises(ConfigError, match="unknown hyperparameter|no_such_key"):
+        validate(TrainConfig(**small, overrides={"no_such_key": 1}))
+    with pytest.raises(ConfigError, match="changes the observation size"):
+        validate(TrainConfig(**small, eval_obs="remove_vel=1"))
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    with pytest.raises(ConfigError, match=f"output folder '{blocker}/run' is not writable"):
+        validate(TrainConfig(**{**small, "out": str(blocker / "run")}))
+    with pytest.raises(ConfigError, match="is not a run folder"):
+        validate(resume=str(tmp_path))
+
+
+def test_devices_for_seeds():
+    assert device_count_for(8, 2) == 2 and device_count_for(3, 2) == 1 and device_count_for(6, 4) == 3
+    assert device_count_for(1, 8) == 1
+    with pytest.raises(ConfigError, match="devices=4 but only 2 device"):
+        device_count_for(4, 2, 4)
+    with pytest.raises(ConfigError, match="seeds=3 cannot be split evenly over devices=2"):
+        device_count_for(3, 2, 2)
+
+
+def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):
+    run = str(tmp_path / "run")
+    os.makedirs(run)
+    saved = TrainConfig(task="cartpole-balance", small=True, out=run, replay_capacity=3000)
+    runfolder.write_config(run, saved, {})
+    changed = TrainConfig(task="cartpole-balance", small=True, out=run, seed=3, eval_obs="noise=0.3", steps=10**6)
+    assert incompatibilities(saved, dataclasses.replace(changed, replay_capacity=3000)) == [
+        "eval_obs: checkpoint has {}, now {'obs_noise': 0.3}", "seed: checkpoint has 0, now 3"]
+    with pytest.raises(ConfigError) as error:
+        validate(changed)
+    assert "cannot resume" in str(error.value) and "seed: checkpoint has 0, now 3" in str(error.value)
+    assert "Only steps, checkpoint_every" in str(error.value)
+    # steps, checkpoint cadence, devices and the like may change; the replay buffer keeps its size.
+    setup = validate(resume=run, steps=10**6)
+    assert setup.config.steps == 10**6 and setup.config.replay_capacity == 3000 and setup.resume_step is None
+    assert TrainConfig.from_dict(saved.to_dict()) == saved
+    with pytest.raises(ConfigError, match=r"unknown configuration key\(s\) \['colour'\]"):
+        TrainConfig.from_dict({**saved.to_dict(), "colour": 1})
+
+
+def test_cli_exits_with_status_2_and_the_message(capsys):
+    from lnnmpc.train.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["--task", "walker-fly"])
+    assert exit_.value.code == 2 and "error: unknown task 'walker-fly'" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--agent", "tdmpc2"])
+    assert exit_.value.code == 2 and "--task is required" in capsys.readouterr().err
+
+
+def test_evaluation_arguments_are_checked(tmp_path):
+    from lnnmpc.train.evaluate import evaluate
+
+    with pytest.raises(ConfigError, match="unknown backend 'bullet'; known: mjx, dm_control"):
+        evaluate(str(tmp_path), backend="bullet")
+    with pytest.raises(ConfigError, match="episodes must be an integer >= 1, got 0"):
+        evaluate(str(tmp_path), episodes=0)
+    with pytest.raises(ConfigError, match="is not a run folder"):
+        evaluate(str(tmp_path))
+
+
+def test_first_non_finite_names_seed_iteration_and_metric():
+    import numpy as np
+
+    ok = np.zeros((2, 5))
+    bad = ok.copy()
+    bad[1, 3], bad[0, 4] = np.inf, np.nan
+    assert _first_non_finite({"reward": bad, "total_loss": ok}) is None
+    assert _first_non_finite({"total_loss": ok, "value_loss": bad}) == (1, 3, "value_loss")
+
+
+def test_reference_lines_from_the_thesis():
+    assert variant({}) == "clean" and variant({"remove_vel": True}) == "remove_vel"
+    assert variant({"obs_noise": 0.2, "flicker": 0.2}) == "noise0.2-flicker0.2"
+    assert references("walker-run", "tdmpc2", {"obs_noise": 0.3}) == {"thesis TD-MPC2": 387.69}
+    assert references("cartpole-swingup", "cfc-op-det", {}) == {"thesis TD-MPC2": 863.9,
+                                                                 "thesis CfC OP det": 880.0}
+    assert references("cartpole-balance", "tdmpc2", {}) == {}
