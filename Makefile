@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install train test lint fmt bench bench-env bench-cells clean
+.PHONY: install train eval video report test lint fmt bench bench-env bench-cells clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -15,6 +15,8 @@ $(STAMP): pyproject.toml
 install: $(STAMP)
 
 # make train TASK=walker-run [AGENT=tdmpc2] [SEEDS=1] [STEPS=200000] [ENVS=1] [OBS="noise=0.1"] [EVAL_OBS=...]
+#            [TRAIN_ARGS="--set plan_horizon=5 --eval-every 20000 ..."]       (python -m lnnmpc.train.cli train -h)
+# make train RESUME=<run folder> [STEPS=...]        continue a run exactly where its newest checkpoint left it
 TASK     ?= walker-run
 AGENT    ?= cfc-zp-det
 SEEDS    ?= 1
@@ -23,9 +25,34 @@ ENVS     ?= 1
 OBS      ?=
 EVAL_OBS ?= $(OBS)
 TRAIN_ARGS ?=
+RESUME   ?=
 train: $(STAMP)
-	$(PY) -m lnnmpc.train.cli --task $(TASK) --agent $(AGENT) --seeds $(SEEDS) --steps $(STEPS) --envs $(ENVS) \
-		--obs "$(OBS)" --eval-obs "$(EVAL_OBS)" $(TRAIN_ARGS)
+ifeq ($(RESUME),)
+	$(PY) -m lnnmpc.train.cli train --task $(TASK) --agent $(AGENT) --seeds $(SEEDS) --steps $(STEPS) \
+		--envs $(ENVS) --obs "$(OBS)" --eval-obs "$(EVAL_OBS)" $(TRAIN_ARGS)
+else
+	$(PY) -m lnnmpc.train.cli train --resume "$(RESUME)" $(if $(filter command line,$(origin STEPS)),--steps $(STEPS)) \
+		$(TRAIN_ARGS)
+endif
+
+# make eval RUN=<run folder> [OBS=...] [EPISODES=10] [BACKEND=mjx|dm_control] [CHECKPOINT=<env step>]
+RUN        ?=
+EPISODES   ?= 10
+BACKEND    ?= mjx
+CHECKPOINT ?=
+eval: $(STAMP)
+	$(PY) -m lnnmpc.train.cli eval "$(RUN)" --episodes $(EPISODES) --backend $(BACKEND) \
+		$(if $(filter command line,$(origin OBS)),--obs "$(OBS)") $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
+
+# make video RUN=<run folder> [OUT=episode.mp4|.gif] [CHECKPOINT=...]  (offscreen OpenGL: Mesa EGL by default)
+OUT ?=
+video: $(STAMP)
+	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m lnnmpc.train.cli video "$(RUN)" $(if $(OUT),--out "$(OUT)") \
+		$(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
+
+# make report RUN=<run folder>: redraw curve.png and summary.md
+report: $(STAMP)
+	$(PY) -m lnnmpc.train.cli report "$(RUN)"
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks experiments

@@ -1,0 +1,93 @@
+"""Acting on the original dm_control simulator (CPU): the policy-transfer check of SPEC §2 and ``make video``.
+
+Episodes run on ``dm_control.suite.load(domain, task)`` environments, stepped from Python, while the agent
+acts through the same protocol as in training (``agent.act`` with its acting carry, deterministic), all seeds
+and episodes in one jitted ``vmap``-ed call per decision. The observation pipeline is the MJX environment's:
+dm_control's observation dict flattened in its key order, cast to float32, the kept dimensions
+(``remove_vel``), then the corruptions of :mod:`lnnmpc.envs.corruptions` (noise, flicker, delay with its Δt),
+applied every agent step. An agent step applies the action for ``action_repeat`` (2) control steps and sums
+the rewards, so an episode is 500 decisions and its return is in [0, 1000].
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lnnmpc.envs import Env
+from lnnmpc.envs.corruptions import corruption_reset, corruption_step
+
+
+def load_dm_control(env: Env, seed: int):
+    """``dm_control.suite.load`` for an lnnmpc environment's task, seeded (``task_kwargs={"random": seed}``)."""
+    from dm_control import suite
+
+    return suite.load(env.spec.domain, env.spec.task, task_kwargs={"random": seed})
+
+
+def flat_observation(timestep, kept: np.ndarray) -> np.ndarray:
+    """dm_control's observation dict flattened in its key order, float32, restricted to the kept dimensions."""
+    flat = np.concatenate([np.atleast_1d(value).ravel() for value in timestep.observation.values()])
+    return flat.astype(np.float32)[kept]
+
+
+def _corruption_fns(env: Env):
+    config = env.corruption
+    reset = jax.jit(jax.vmap(lambda key, obs: corruption_reset(config, key, obs)))
+    step = jax.jit(jax.vmap(lambda state, key, t, obs: corruption_step(config, state, key, t, obs)))
+    return reset, step
+
+
+def _act_fn(agent: Any) -> Callable:
+    """act for (seeds, episodes): agent states carry the seed axis, everything else (seeds, episodes, ...)."""
+    def one(state, carry, obs, dt, key, first):
+        return agent.act(state, carry, obs, dt, key, explore=False, first_step=first)
+
+    per_seed = jax.vmap(one, in_axes=(None, 0, 0, 0, 0, 0))
+    return jax.jit(jax.vmap(per_seed))
+
+
+def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: jax.Array, *, seed: int = 0,
+                 on_step: Callable[[int, int, Any, float], None] | None = None) -> np.ndarray:
+    """Deterministic episodes of every seed's policy on dm_control; returns returns (seeds, episodes).
+
+    Args:
+      env: the lnnmpc environment whose task, action repeat and corruptions to reproduce.
+      agent, agent_states: the agent and its state with a leading seed axis.
+      key: randomness of the planner and the corruptions. seed: dm_control's initial-state seed (episode e of
+        every seed policy starts from the same dm_control state, drawn with ``seed + e``).
+      on_step: called as ``on_step(seed_index, episode, physics, episode_return)`` after every agent step
+        (e.g. to render frames).
+    """
+    seeds = jax.tree_util.tree_leaves(agent_states)[0].shape[0]
+    n = (seeds, episodes)
+    sims = [[load_dm_control(env, seed + e) for e in range(episodes)] for _ in range(seeds)]
+    timesteps = [[sim.reset() for sim in row] for row in sims]
+    obs = np.stack([[flat_observation(ts, env.kept) for ts in row] for row in timesteps])
+    k_corrupt, k_act = jax.random.split(key)
+    corrupt_reset, corrupt_step = _corruption_fns(env)
+    flat_keys = lambda k: jax.random.split(k, seeds * episodes)
+    cstate, delivered, dt = corrupt_reset(flat_keys(k_corrupt), jnp.asarray(obs.reshape(seeds * episodes, -1)))
+    carry = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (*n, *jnp.shape(x))), agent.initial_carry())
+    act = _act_fn(agent)
+    totals = np.zeros(n)
+    for t in range(env.episode_length):
+        k_act, k_step, k_obs = jax.random.split(k_act, 3)
+        action, carry = act(agent_states, carry, delivered.reshape(*n, -1), dt.reshape(n),
+                            flat_keys(k_step).reshape(n), jnp.full(n, t == 0))
+        action = np.asarray(action, dtype=np.float64)
+        for s in range(seeds):
+            for e in range(episodes):
+                for _ in range(env.action_repeat):
+                    timesteps[s][e] = sims[s][e].step(action[s, e])
+                    totals[s, e] += timesteps[s][e].reward or 0.0
+                if on_step is not None:
+                    on_step(s, e, sims[s][e].physics, totals[s, e])
+        obs = np.stack([[flat_observation(ts, env.kept) for ts in row] for row in timesteps])
+        cstate, delivered, dt = corrupt_step(cstate, flat_keys(k_obs), jnp.full(seeds * episodes, t + 1, jnp.int32),
+                                             jnp.asarray(obs.reshape(seeds * episodes, -1)))
+    return totals

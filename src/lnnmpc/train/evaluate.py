@@ -1,0 +1,134 @@
+"""``lnnmpc.evaluate(run, ...)``: re-evaluate a run's checkpoint under any corruption, on MJX or on dm_control.
+
+    import lnnmpc
+    result = lnnmpc.evaluate("runs/walker-run/tdmpc2/20260101-120000-clean", obs="noise=0.3", episodes=10,
+                             backend="dm_control")
+    result.mean, result.std, result.path          # path: the CSV written under <run>/evals/
+
+Each seed's policy plays ``episodes`` deterministic episodes (the training evaluation protocol: MPPI without
+exploration noise, each episode with its own seed). ``backend="mjx"`` runs them in parallel in one compiled
+program on the default JAX device with the physics profile the run trained on; ``backend="dm_control"`` runs the
+same agent on the original dm_control simulator on the CPU (:mod:`lnnmpc.train.dm_backend`). The CSV has one
+row per (seed, episode) with the checkpoint's environment step, backend and corruption options.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+
+import jax
+import numpy as np
+
+from lnnmpc import envs
+from lnnmpc.train import runfolder
+from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
+from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag, parse_obs
+from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.sharding import SeedPlacement
+from lnnmpc.train.trainer import build_loop, check_layout, enable_compile_cache, state_signature
+
+BACKENDS = ("mjx", "dm_control")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalResult:
+    """Returns (seeds, episodes) of one evaluation and where they were written."""
+
+    returns: np.ndarray
+    checkpoint: int
+    backend: str
+    obs: dict
+    path: str
+
+    @property
+    def mean(self) -> float:
+        return float(self.returns.mean())
+
+    @property
+    def std(self) -> float:
+        """Over seeds' mean returns with several seeds, over episodes with one."""
+        per_seed = self.returns.mean(axis=1)
+        return float(per_seed.std() if per_seed.size > 1 else self.returns.std())
+
+
+@dataclasses.dataclass(frozen=True)
+class Policy:
+    """A run's trained agent at one checkpoint: the run's configuration, its loop and the seed-batched state."""
+
+    config: TrainConfig
+    loop: TrainingLoop
+    agent_state: object
+    checkpoint: int
+
+
+def choose_checkpoint(run: str, checkpoint: int | None) -> int:
+    steps = all_steps(run)
+    if not steps:
+        raise ConfigError(f"{run!r} has no complete checkpoint")
+    if checkpoint is None:
+        return steps[-1]
+    if checkpoint not in steps:
+        raise ConfigError(f"checkpoint {checkpoint!r} is not in {run}; available: {', '.join(map(str, steps))}")
+    return checkpoint
+
+
+def load_policy(run: str, checkpoint: int | None = None) -> Policy:
+    """Restores the agent state of all seeds from a checkpoint (the latest by default)."""
+    config = runfolder.saved_config(run)
+    step = choose_checkpoint(run, checkpoint)
+    loop = build_loop(config)
+    check_layout(run, state_signature(loop, config.seeds))
+    like = jax.eval_shape(jax.vmap(loop.init), jax.random.split(jax.random.key(0), config.seeds))
+    state, _ = restore_checkpoint(run, step, like)
+    return Policy(config=config, loop=loop, agent_state=state.agent, checkpoint=step)
+
+
+def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, backend: str = "mjx",
+             checkpoint: int | None = None, seed: int = 0, out: str | None = None,
+             verbose: bool = True) -> EvalResult:
+    """Evaluates a run's checkpoint; writes a CSV (``out`` or ``<run>/evals/<backend>-<obs>-<step>.csv``).
+
+    ``obs``: corruption options (text like "noise=0.3" or a dict; None: the run's evaluation corruptions).
+    ``episodes``: per seed. ``checkpoint``: an environment step with a checkpoint (None: the latest).
+    """
+    if backend not in BACKENDS:
+        raise ConfigError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    config = runfolder.saved_config(run)
+    options = dict(config.eval_obs) if obs is None else parse_obs(obs)
+    step = choose_checkpoint(run, checkpoint)
+    try:
+        env = envs.make(config.task, physics=config.physics, **options)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    enable_compile_cache(config.compile_cache)
+    policy = load_policy(run, step)
+    if env.observation_size != policy.loop.env.observation_size:
+        raise ConfigError(f"observation options {options} give {env.observation_size} dimensions, the run's agent "
+                          f"takes {policy.loop.env.observation_size} (remove_vel must match training)")
+    key = jax.random.key(seed)
+    if backend == "mjx":
+        loop = TrainingLoop(policy.loop.agent, env, env, LoopConfig(eval_episodes=episodes))
+        placement = SeedPlacement(1)  # the trainer's program for the same settings (a compilation-cache hit)
+        keys = placement.put(jax.random.split(key, config.seeds))
+        returns = np.asarray(placement.compile(loop.evaluate)(placement.put(policy.agent_state), keys))
+    else:
+        from lnnmpc.train.dm_backend import run_episodes
+
+        returns = run_episodes(env, policy.loop.agent, policy.agent_state, episodes, key, seed=seed)
+    path = out or os.path.join(run, "evals", f"{backend}-{obs_tag(options)}-{step}.csv")
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    if os.path.exists(path):
+        os.remove(path)
+    runfolder.append_csv(path, [
+        {"env_step": step, "seed": s, "episode": e, "return": float(returns[s, e]), "backend": backend,
+         "obs": obs_tag(options)} for s in range(returns.shape[0]) for e in range(returns.shape[1])])
+    result = EvalResult(returns=returns, checkpoint=step, backend=backend, obs=options, path=path)
+    if verbose:
+        sys.stdout.write(f"{config.task} {config.agent} checkpoint {step:,} on {backend} with "
+                         f"{obs_tag(options)}: return {result.mean:.1f} ± {result.std:.1f} "
+                         f"({returns.shape[0]} seed(s) x {episodes} episodes) -> {path}\n")
+    return result

@@ -1,0 +1,113 @@
+"""``make video RUN=<folder>``: one evaluation episode rendered offscreen to MP4 or GIF, with the return overlaid.
+
+The episode runs on dm_control's simulator (:mod:`lnnmpc.train.dm_backend`, the simulator a policy trained on
+MJX must transfer to) with the run's evaluation corruptions; after every agent step MuJoCo's renderer draws the
+scene from the task's first camera. Rendering needs an offscreen OpenGL: ``MUJOCO_GL=egl`` (Mesa's EGL works
+without a display or GPU; set by the CLI unless already set) or ``osmesa``; it must be chosen before MuJoCo is
+imported. Frames are encoded at real time (1 / (control timestep × action repeat) frames per second): MP4 with
+the ffmpeg binary of ``imageio-ffmpeg``, GIF with Pillow.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+import jax
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from lnnmpc.train.config import ConfigError, parse_obs
+from lnnmpc.train.evaluate import load_policy
+
+FORMATS = ("mp4", "gif")
+
+
+def overlay(frame: np.ndarray, lines: list[str]) -> np.ndarray:
+    """The frame (H, W, 3) uint8 with ``lines`` of text drawn on a dark band at the top."""
+    image = Image.fromarray(frame)
+    draw = ImageDraw.Draw(image, "RGBA")
+    font = ImageFont.load_default(size=max(10, frame.shape[0] // 20))
+    height = sum(draw.textbbox((0, 0), line, font=font)[3] + 2 for line in lines) + 6
+    draw.rectangle((0, 0, frame.shape[1], height), fill=(0, 0, 0, 150))
+    y = 3
+    for line in lines:
+        draw.text((5, y), line, fill=(255, 255, 255, 255), font=font)
+        y += draw.textbbox((0, 0), line, font=font)[3] + 2
+    return np.asarray(image)
+
+
+def encode(frames: list[np.ndarray], path: str, fps: float) -> str:
+    """Writes frames (H, W, 3) uint8 to ``path`` (.mp4 via imageio-ffmpeg, .gif via Pillow); returns the path."""
+    kind = os.path.splitext(path)[1].lstrip(".").lower()
+    if kind not in FORMATS:
+        raise ConfigError(f"video file {path!r}: use one of {', '.join('.' + f for f in FORMATS)}")
+    if not frames:
+        raise ValueError("no frames to encode")
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    if kind == "gif":
+        images = [Image.fromarray(f) for f in frames]
+        images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
+        return path
+    import imageio_ffmpeg
+
+    height, width = frames[0].shape[:2]
+    writer = imageio_ffmpeg.write_frames(path, (width, height), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                         macro_block_size=2, ffmpeg_log_level="error")
+    writer.send(None)
+    for frame in frames:
+        writer.send(np.ascontiguousarray(frame))
+    writer.close()
+    return path
+
+
+def record(run: str, *, out: str | None = None, obs: str | dict | None = None, checkpoint: int | None = None,
+           seed_index: int = 0, episode_seed: int = 0, width: int = 320, height: int = 240,
+           max_steps: int | None = None, camera: int = 0) -> str:
+    """Renders one deterministic episode of seed ``seed_index``'s policy; returns the video path.
+
+    ``out`` defaults to ``<run>/videos/<checkpoint>.mp4``. ``max_steps`` cuts the episode (agent steps).
+    """
+    os.environ.setdefault("MUJOCO_GL", "egl")  # only effective before dm_control is first imported
+    from lnnmpc import envs
+    from lnnmpc.train.dm_backend import run_episodes
+
+    policy = load_policy(run, checkpoint)
+    config = policy.config
+    if not 0 <= seed_index < config.seeds:
+        raise ConfigError(f"seed_index {seed_index!r} out of range: the run has seeds 0..{config.seeds - 1}")
+    options = dict(config.eval_obs) if obs is None else parse_obs(obs)
+    env = envs.make(config.task, physics=config.physics, **options)
+    if max_steps is not None:
+        env = _shortened(env, max_steps)
+    state = jax.tree_util.tree_map(lambda x: x[seed_index:seed_index + 1], policy.agent_state)
+    frames = []
+
+    def on_step(_, __, physics, total):
+        frame = physics.render(height=height, width=width, camera_id=camera)
+        lines = [f"{config.task} | {config.agent} | {policy.checkpoint:,} env steps",
+                 f"step {len(frames) + 1:3d}  return {total:6.1f}"]
+        frames.append(overlay(frame, lines))
+
+    returns = run_episodes(env, policy.loop.agent, state, 1, jax.random.key(episode_seed), seed=episode_seed,
+                           on_step=on_step)
+    fps = _fps(env)
+    path = encode(frames, out or os.path.join(run, "videos", f"{policy.checkpoint}.mp4"), fps)
+    sys.stdout.write(f"episode return {returns[0, 0]:.1f}; {len(frames)} frames at {fps:g} fps -> {path}\n")
+    return path
+
+
+def _fps(env) -> float:
+    """Agent steps per second of simulated time."""
+    control_timestep = env.mj_model.opt.timestep * env.n_substeps
+    return 1.0 / (control_timestep * env.action_repeat)
+
+
+def _shortened(env, max_steps: int):
+    """The environment with an episode of at most ``max_steps`` agent steps (for short clips)."""
+    import dataclasses
+
+    if max_steps < 1:
+        raise ConfigError(f"max_steps must be >= 1, got {max_steps!r}")
+    spec = dataclasses.replace(env.spec, control_steps=min(env.spec.control_steps, max_steps * env.action_repeat))
+    return dataclasses.replace(env, spec=spec)

@@ -1,0 +1,218 @@
+"""The trainer end to end at CI size, in subprocesses as a user runs it: run folder, kill/Ctrl-C and exact resume,
+seeds sharded over two (forced host) devices, NaN stop, evaluation on MJX and on dm_control, video.
+
+One reference run (2 seeds) is trained once per module; the other runs use the same configuration and hit
+XLA's persistent compilation cache (a folder per test session), so they mostly pay for tracing.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+CONFIG = ["--task", "cartpole-balance", "--small", "--model-size", "1", "--seeds", "2", "--steps", "1600",
+          "--seed-steps", "400", "--eval-every", "400", "--eval-episodes", "2", "--batch-size", "16",
+          "--checkpoint-every", "400", "--replay-capacity", "2400", "--keep-checkpoints", "10"]
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("xla-cache"))
+
+
+def _env(cache: str, **extra) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    return {**env, "JAX_PLATFORMS": "cpu", "LNNMPC_COMPILE_CACHE": cache, "MUJOCO_GL": "disable", **extra}
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "lnnmpc.train.cli", *args]
+
+
+def _run(args: list[str], cache: str, timeout: float = 600, **extra) -> subprocess.CompletedProcess:
+    return subprocess.run(_cli(*args), env=_env(cache, **extra), capture_output=True, text=True, timeout=timeout)
+
+
+def _steps(run) -> list[int]:
+    folder = os.path.join(run, "checkpoints")
+    return sorted(int(n) for n in os.listdir(folder) if n.isdigit()) if os.path.isdir(folder) else []
+
+
+def _wait_for_checkpoint(proc: subprocess.Popen, run, above: int, timeout: float = 400) -> int:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        done = [s for s in _steps(run) if s > above]
+        if done:
+            return done[-1]
+        assert proc.poll() is None, f"the run ended before a checkpoint above {above}: {proc.communicate()}"
+        time.sleep(0.05)
+    raise AssertionError("no checkpoint in time")
+
+
+def _rows(path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, cache):
+    """An uninterrupted run of CONFIG."""
+    run = tmp_path_factory.mktemp("runs") / "reference"
+    result = _run([*CONFIG, "--out", str(run)], cache)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return run
+
+
+def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
+    import json
+
+    files = {p.name for p in reference.iterdir()}
+    assert {"config.json", "train.csv", "eval.csv", "curve.png", "summary.md", "checkpoints"} <= files
+    config = json.loads((reference / "config.json").read_text())
+    assert config["config"]["seeds"] == 2 and config["config"]["replay_capacity"] == 2400
+    assert config["num_devices"] == 1
+    rows = _rows(reference / "eval.csv")
+    assert set(rows[0]) == {"env_step", "seed", "episode", "return"}
+    steps = sorted({int(r["env_step"]) for r in rows})
+    assert steps[0] == 400 and steps[-1] >= 1600 and len(rows) == 4 * len(steps)  # 2 seeds x 2 episodes
+    assert all(0 <= float(r["return"]) <= 1000 for r in rows)
+    train = _rows(reference / "train.csv")
+    assert {"episode_return", "total_loss", "consistency_loss"} <= set(train[0])
+    assert all(np.isfinite(float(r["total_loss"])) for r in train if int(r["env_step"]) > 400)
+    assert _steps(reference) == [400, 800, 1598, 1998] == steps[:2] + steps[-2:]  # chunks end at 1198, 1598
+    summary = (reference / "summary.md").read_text()
+    assert "cartpole-balance · tdmpc2 · 2 seed(s)" in summary and "**Final return" in summary
+    assert summary.count("\n") < 40  # one screen
+    assert (reference / "curve.png").stat().st_size > 10_000
+
+
+def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp_path, cache):
+    run = tmp_path / "resumed"
+    # 1: SIGKILL right after the first checkpoint (the seed phase).
+    proc = subprocess.Popen(_cli(*CONFIG, "--out", str(run)), env=_env(cache), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    first = _wait_for_checkpoint(proc, run, -1)
+    proc.kill()
+    proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    # 2: resume; Ctrl-C after its next checkpoint: saves a checkpoint after the running chunk, exits 130.
+    proc = subprocess.Popen(_cli("train", "--resume", str(run)), env=_env(cache), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    second = _wait_for_checkpoint(proc, run, first)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 130, err[-2000:]
+    assert "checkpoint saved" in err and f"make train RESUME={run}" in err and "Traceback" not in err
+    interrupted = _steps(run)[-1]
+    assert second <= interrupted < 1600
+    # 3: resume to the end: the same evaluation rows (bit for bit) and per-episode training rows.
+    result = _run(["train", "--resume", str(run)], cache)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert f"resuming {run} at {interrupted:,} env steps" in result.stderr
+    assert (run / "eval.csv").read_text() == (reference / "eval.csv").read_text()
+    assert (run / "train.csv").read_text() == (reference / "train.csv").read_text()
+
+
+def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_path, cache):
+    """Seed phase, update burst and evaluation of the 2 seeds sharded over 2 CPU devices (one seed each): the same
+    training state as the unsharded reference up to float32 round-off (XLA may pick other kernels for a batch of
+    one; evaluation returns are not compared, MPPI amplifies such differences)."""
+    import json
+
+    import jax
+
+    from lnnmpc.train.checkpoint import restore_checkpoint
+    from lnnmpc.train.evaluate import load_policy
+
+    run = tmp_path / "sharded"
+    result = _run([*CONFIG, "--steps", "400", "--out", str(run)], cache,
+                  XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads((run / "config.json").read_text())["num_devices"] == 2 and _steps(run) == [400]
+    policy = load_policy(str(reference), 400)
+    like = jax.eval_shape(jax.vmap(policy.loop.init), jax.random.split(jax.random.key(0), 2))
+    one, two = (restore_checkpoint(str(folder), 400, like)[0] for folder in (reference, run))
+    floats = lambda tree: [np.asarray(x, np.float64) for x in jax.tree_util.tree_leaves(tree)
+                           if jax.numpy.issubdtype(x.dtype, jax.numpy.floating) and x.size]
+    for part in ("agent", "replay", "env"):
+        for x, y in zip(floats(getattr(one, part)), floats(getattr(two, part)), strict=True):
+            np.testing.assert_allclose(x, y, atol=1e-5, rtol=1e-5, err_msg=part)
+    assert len(_rows(run / "eval.csv")) == 4
+
+
+def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(reference, tmp_path, monkeypatch, cache):
+    import lnnmpc
+    from lnnmpc.train import trainer
+
+    monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
+    run = tmp_path / "diverged"
+    shutil.copytree(reference, run)
+    before, eval_before = _steps(run), (run / "eval.csv").read_text()
+    real = trainer._Run.chunk_fn
+
+    def poisoned(self, name, length):
+        fn = real(self, name, length)
+
+        def call(ts):
+            ts, out = fn(ts)
+            loss = np.array(out["total_loss"])
+            loss[1, 7] = np.nan
+            return ts, {**out, "total_loss": loss}
+        return call
+
+    monkeypatch.setattr(trainer._Run, "chunk_fn", poisoned)
+    with pytest.raises(lnnmpc.TrainingDiverged) as error:
+        lnnmpc.train(resume=str(run), steps=2400)
+    last = before[-1]
+    assert f"non-finite total_loss (NaN or Inf) at env step ~{last + 16:,}, seed 1" in str(error.value)
+    assert f"last good checkpoint ({last:,} env steps) is kept" in str(error.value)
+    assert _steps(run) == before and (run / "eval.csv").read_text() == eval_before
+
+
+def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
+    import lnnmpc
+
+    monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
+    result = lnnmpc.evaluate(str(reference), episodes=2, checkpoint=800, verbose=False)
+    assert result.returns.shape == (2, 2) and result.checkpoint == 800 and result.backend == "mjx"
+    assert np.all((result.returns >= 0) & (result.returns <= 1000))
+    assert os.path.basename(result.path) == "mjx-clean-800.csv" and len(_rows(result.path)) == 4
+    with pytest.raises(lnnmpc.ConfigError, match="checkpoint 500 is not in .*; available: 400, 800, 1598, 1998"):
+        lnnmpc.evaluate(str(reference), checkpoint=500)
+
+
+def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(reference, cache):
+    """The latest checkpoint's policy on the original dm_control simulator, 2 seeds x 2 episodes."""
+    result = _run(["eval", str(reference), "--episodes", "2", "--backend", "dm_control", "--obs", "noise=0.1,delay=2"],
+                  cache)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "checkpoint 1,998 on dm_control with delay2-noise0.1: return " in result.stdout and " ± " in result.stdout
+    rows = _rows(reference / "evals" / "dm_control-delay2-noise0.1-1998.csv")
+    assert [(int(r["seed"]), int(r["episode"])) for r in rows] == [(0, 0), (0, 1), (1, 0), (1, 1)]
+    returns = np.asarray([float(r["return"]) for r in rows])
+    assert np.all((returns > 0) & (returns <= 1000)) and {r["backend"] for r in rows} == {"dm_control"}
+    mean = float(result.stdout.split("return ")[1].split(" ±")[0])
+    assert mean == pytest.approx(returns.mean(), abs=0.06)
+
+
+def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache):
+    import imageio_ffmpeg
+
+    out = tmp_path / "episode.mp4"
+    result = _run(["video", str(reference), "--out", str(out), "--max-steps", "12", "--width", "96",
+                   "--height", "72"], cache, MUJOCO_GL="egl")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "12 frames at 50 fps" in result.stdout
+    reader = imageio_ffmpeg.read_frames(str(out))
+    meta = next(reader)
+    frames = [np.frombuffer(f, np.uint8).reshape(72, 96, 3) for f in reader]
+    assert meta["size"] == (96, 72) and len(frames) == 12
+    assert frames[-1][40:].std() > 5  # a rendered scene below the text band, not a blank image
