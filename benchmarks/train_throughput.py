@@ -14,6 +14,8 @@ Writes JSON (device, versions, config, results), rewritten after each measuremen
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import sys
 
 import jax
@@ -22,39 +24,64 @@ import jax.numpy as jnp
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from common import default_out, environment_info, time_call, write_json  # noqa: E402
 
-from lnnmpc.train.cli import build, build_parser  # noqa: E402
+from lnnmpc import envs as envs_lib  # noqa: E402
+from lnnmpc.agents.registry import make_agent  # noqa: E402
+from lnnmpc.train.loop import LoopConfig, TrainingLoop  # noqa: E402
 
 
-def measure(task: str, seeds: int, args) -> dict:
-    cli_args = ["--task", task, "--seeds", str(seeds), "--steps", "100000"] + (["--small"] if args.small else [])
-    loop, _ = build(build_parser().parse_args(cli_args))
+def build_loop(task: str, agent: str, envs: int, small: bool) -> TrainingLoop:
+    """The trainer's loop with default settings (replay sized for 100K environment steps)."""
+    env = envs_lib.make(task)
+    agent = make_agent(agent, env.observation_size, env.action_size, small=small)
+    return TrainingLoop(agent, env, env, LoopConfig(num_envs=envs, replay_capacity=51_000))
+
+
+def measure(task: str, seeds: int, envs: int, args) -> dict:
+    loop = build_loop(task, args.agent, envs, args.small)
     ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(0), seeds))
-    seed_iters = args.fill
     seed_chunk = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
-    ts, _ = seed_chunk(ts, seed_iters)
-    horizon, act_dim = loop.horizon, loop.env.action_size
+    ts, _ = seed_chunk(ts, args.fill)
+    act_dim = loop.env.action_size
+    record = {"task": task, "agent": args.agent, "seeds": seeds, "envs": envs}
 
-    act = jax.jit(jax.vmap(lambda s, obs, k: loop.agent.act(s, obs, jnp.zeros((horizon, act_dim)), k, explore=True,
-                                                            first_step=jnp.array(False))))
-    obs = ts.env.obs[:, 0]
-    act_t = time_call(act, ts.agent, obs, jax.random.split(jax.random.key(1), seeds), repeats=args.repeats)
+    def act_fn(agent):
+        one = lambda s, carry, obs, dt, k: agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
+        return jax.jit(jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))))  # seeds x envs
+
+    keys = jax.random.split(jax.random.key(1), (seeds, envs))
+    act_args = (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)
+    act_t = time_call(act_fn(loop.agent), *act_args, repeats=args.repeats)
+    record["act_ms"] = 1e3 * act_t["median_s"]
+    if args.compare_unroll:
+        rolled = type(loop.agent)(dataclasses.replace(
+            loop.agent.config, planner=dataclasses.replace(loop.agent.config.planner, unroll=False)))
+        record["act_rolled_ms"] = 1e3 * time_call(act_fn(rolled), *act_args, repeats=args.repeats)["median_s"]
+    env_step = jax.jit(jax.vmap(jax.vmap(loop.env.step)))
+    actions = jnp.zeros((seeds, envs, act_dim))
+    record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
     update = jax.jit(jax.vmap(loop._update))
-    update_t = time_call(update, ts, jax.random.split(jax.random.key(2), seeds), repeats=args.repeats)
+    record["update_ms"] = 1e3 * time_call(update, ts, jax.random.split(jax.random.key(2), seeds),
+                                          repeats=args.repeats)["median_s"]
     train = jax.jit(jax.vmap(loop.train_chunk, in_axes=(0, None)), static_argnums=1)
     chunk_t = time_call(train, ts, args.chunk, repeats=max(1, args.repeats // 3))
-    env_steps = seeds * args.chunk * loop.config.num_envs * loop.env.action_repeat
-    return {
-        "task": task, "seeds": seeds, "act_ms": 1e3 * act_t["median_s"], "update_ms": 1e3 * update_t["median_s"],
+    env_steps = seeds * args.chunk * envs * loop.env.action_repeat
+    record.update({
         "chunk_iterations": args.chunk, "chunk_s": chunk_t["median_s"],
         "chunk_env_steps_per_s": env_steps / chunk_t["median_s"],
         "ms_per_iteration": 1e3 * chunk_t["median_s"] / args.chunk, "compile_chunk_s": chunk_t["first_call_s"],
-    }
+        # Where an iteration's time goes if the parts ran back to back (act, env step, envs x update).
+        "parts_ms": {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]},
+    })
+    return record
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--tasks", default="walker-run,cartpole-swingup")
+    parser.add_argument("--agent", default="tdmpc2")
     parser.add_argument("--seeds", default="1,4,8")
+    parser.add_argument("--envs", default="1", help="environments per seed (comma list)")
+    parser.add_argument("--compare-unroll", action="store_true", help="also time the act step with rolled scans")
     parser.add_argument("--chunk", type=int, default=200, help="iterations per timed training chunk")
     parser.add_argument("--fill", type=int, default=600, help="random iterations to fill the replay first")
     parser.add_argument("--repeats", type=int, default=9)
@@ -64,11 +91,12 @@ def main(argv=None):
     out = args.out or default_out("train_throughput")
     payload = {"benchmark": "train_throughput", "env": environment_info(), "args": vars(args), "results": []}
     for task in args.tasks.split(","):
-        for seeds in (int(s) for s in args.seeds.split(",")):
-            record = measure(task, seeds, args)
+        for seeds, envs in itertools.product(map(int, args.seeds.split(",")), map(int, args.envs.split(","))):
+            record = measure(task, seeds, envs, args)
             payload["results"].append(record)
             write_json(out, payload)
-            print(f"{task:18s} seeds={seeds:2d}  act {record['act_ms']:8.2f} ms  update {record['update_ms']:8.2f} ms"
+            print(f"{task:18s} seeds={seeds:2d} envs={envs:2d}  env {record['env_ms']:6.2f} ms"
+                  f"  act {record['act_ms']:8.2f} ms  update {record['update_ms']:8.2f} ms"
                   f"  chunk {record['ms_per_iteration']:8.2f} ms/iteration"
                   f"  {record['chunk_env_steps_per_s']:10.0f} env steps/s", flush=True)
     print(f"wrote {out}")
