@@ -92,6 +92,23 @@ def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):
         TrainConfig.from_dict({**saved.to_dict(), "colour": 1})
 
 
+def test_resuming_with_changed_agent_hyperparameters_is_refused(tmp_path):
+    from lnnmpc.train.compat import agent_config_json, check_agent_config
+    from lnnmpc.train.trainer import build_loop
+
+    run = str(tmp_path)
+    agent = build_loop(TrainConfig(task="cartpole-balance", small=True, model_size=1)).agent.config
+    saved = agent_config_json(agent)
+    saved["planner"]["horizon"] = 7
+    runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": saved})
+    with pytest.raises(ConfigError) as error:
+        check_agent_config(run, agent)
+    assert "planner.horizon: checkpoint has 7, now 3" in str(error.value) and "--set KEY=VALUE" in str(error.value)
+    runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run),
+                           {"agent_config": agent_config_json(agent)})
+    check_agent_config(run, agent)  # equal hyperparameters: no error
+
+
 def test_cli_exits_with_status_2_and_the_message(capsys):
     from lnnmpc.train.cli import main
 

@@ -24,8 +24,10 @@ OBS_KEYS = {"noise": "obs_noise", "obs_noise": "obs_noise", "flicker": "flicker"
 TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 # Settings a run may change when it is resumed; everything else must equal the checkpoint's configuration.
+# ``overrides`` may change as long as the agent's resolved hyperparameters stay those of the checkpoint (checked
+# by lnnmpc.train.compat.check_agent_config), e.g. to pin a default that changed in the code since the run.
 RESUMABLE_CHANGES = ("steps", "name", "runs_dir", "checkpoint_every", "keep_checkpoints", "devices",
-                     "tensorboard", "compile_cache")
+                     "tensorboard", "compile_cache", "overrides")
 
 
 class ConfigError(ValueError):

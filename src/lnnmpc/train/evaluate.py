@@ -24,10 +24,11 @@ import numpy as np
 from lnnmpc import envs
 from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
+from lnnmpc.train.compat import check_layout, state_signature
 from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag, parse_obs
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.sharding import SeedPlacement
-from lnnmpc.train.trainer import build_loop, check_layout, enable_compile_cache, state_signature
+from lnnmpc.train.trainer import build_loop, enable_compile_cache
 
 BACKENDS = ("mjx", "dm_control")
 
@@ -61,6 +62,13 @@ class Policy:
     loop: TrainingLoop
     agent_state: object
     checkpoint: int
+
+
+def check_observation_size(env, policy: Policy) -> None:
+    """Evaluation corruptions must keep the observation the agent was trained on (remove_vel as in training)."""
+    if env.observation_size != policy.loop.env.observation_size:
+        raise ConfigError(f"observation options {env.corruption} give {env.observation_size} dimensions, the "
+                          f"run's agent takes {policy.loop.env.observation_size} (remove_vel must match training)")
 
 
 def choose_checkpoint(run: str, checkpoint: int | None) -> int:
@@ -106,9 +114,7 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
         raise ConfigError(str(error)) from None
     enable_compile_cache(config.compile_cache)
     policy = load_policy(run, step)
-    if env.observation_size != policy.loop.env.observation_size:
-        raise ConfigError(f"observation options {options} give {env.observation_size} dimensions, the run's agent "
-                          f"takes {policy.loop.env.observation_size} (remove_vel must match training)")
+    check_observation_size(env, policy)
     key = jax.random.key(seed)
     if backend == "mjx":
         loop = TrainingLoop(policy.loop.agent, env, env, LoopConfig(eval_episodes=episodes))

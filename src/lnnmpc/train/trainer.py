@@ -19,10 +19,8 @@ environment step, seed and metric; the newest checkpoint (written before the bad
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import math
 import os
-import re
 import signal
 import sys
 import threading
@@ -37,7 +35,8 @@ from lnnmpc.agents.registry import make_agent
 from lnnmpc.replay import replay_capacity_for
 from lnnmpc.train import report, runfolder
 from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
-from lnnmpc.train.config import ConfigError, TrainConfig, incompatibilities
+from lnnmpc.train.compat import agent_config_json, check_agent_config, check_compatible, check_layout, state_signature
+from lnnmpc.train.config import ConfigError, TrainConfig
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.sharding import SeedPlacement, device_count_for
 
@@ -93,15 +92,6 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
                                                          eval_episodes=config.eval_episodes))
 
 
-def state_signature(loop: TrainingLoop, seeds: int) -> str:
-    """A hash of the training state's layout (tree structure, shapes, dtypes): traced, not compiled."""
-    shapes = jax.eval_shape(jax.vmap(loop.init), jax.random.split(jax.random.key(0), seeds))
-    leaves, treedef = jax.tree_util.tree_flatten(shapes)
-    structure = re.sub(r" at 0x[0-9a-f]+", "", str(treedef))  # object addresses differ between processes
-    text = structure + "".join(f"{x.shape}{x.dtype}" for x in leaves)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
-
-
 def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None) -> Setup:
     """Checks everything that can be checked without compiling; returns the :class:`Setup` to train with.
 
@@ -119,7 +109,7 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
         saved = runfolder.saved_config(run)
         if config.replay_capacity is None:  # the buffer keeps its size when a resumed run gets more steps
             config = dataclasses.replace(config, replay_capacity=saved.replay_capacity)
-        _check_compatible(run, saved, config)
+        check_compatible(run, saved, config)
     elif resume is not None:
         raise ConfigError(f"{resume!r} is not a run folder (no {runfolder.CONFIG_FILE})")
     loop = build_loop(config)
@@ -135,23 +125,9 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
     signature = state_signature(loop, config.seeds)
     if resume_step is not None:
         check_layout(run, signature)
+        check_agent_config(run, loop.agent.config)
     return Setup(config=config, loop=loop, run=run, resume_step=resume_step, num_devices=num_devices,
                  signature=signature)
-
-
-def check_layout(run: str, signature: str) -> None:
-    """Refuses checkpoints whose state layout differs from what this code builds (:func:`state_signature`)."""
-    if runfolder.read_config(run).get("state_signature") != signature:
-        raise ConfigError(f"the checkpoints in {run} hold a training state of another layout than this code "
-                          "builds for the same configuration (the code changed since the run); start a new run")
-
-
-def _check_compatible(run: str, saved: TrainConfig, config: TrainConfig) -> None:
-    problems = incompatibilities(saved, config)
-    if problems:
-        raise ConfigError(f"cannot resume {run} with a changed configuration ({'; '.join(problems)}). Only "
-                          "steps, checkpoint_every, keep_checkpoints, devices, name, runs_dir, tensorboard and "
-                          "compile_cache may change; start a new run for anything else")
 
 
 def enable_compile_cache(folder: str) -> None:
@@ -223,7 +199,7 @@ class _Run:
     def execute(self) -> str:
         c = self.config
         runfolder.write_config(self.run, c, {
-            "state_signature": self.setup.signature, "agent_config": _jsonable(self.loop.agent.config),
+            "state_signature": self.setup.signature, "agent_config": agent_config_json(self.loop.agent.config),
             "loop": dataclasses.asdict(self.loop.config), "devices": [d.device_kind for d in jax.devices()],
             "num_devices": self.setup.num_devices, "chunk": self.setup.chunk})
         keys = jax.random.split(jax.random.key(c.seed), c.seeds)
@@ -345,10 +321,6 @@ class _Run:
         n = self.counters
         n["last_checkpoint"] = n["env_steps"]
         save_checkpoint(self.run, n["env_steps"], self.ts, dict(n), keep=self.config.keep_checkpoints)
-
-
-def _jsonable(value):
-    return dataclasses.asdict(value) if dataclasses.is_dataclass(value) else value
 
 
 def _key_list(key: jax.Array) -> list[int]:

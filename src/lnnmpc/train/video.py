@@ -18,7 +18,7 @@ import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
 from lnnmpc.train.config import ConfigError, parse_obs
-from lnnmpc.train.evaluate import load_policy
+from lnnmpc.train.evaluate import check_observation_size, load_policy
 
 FORMATS = ("mp4", "gif")
 
@@ -78,6 +78,7 @@ def record(run: str, *, out: str | None = None, obs: str | dict | None = None, c
         raise ConfigError(f"seed_index {seed_index!r} out of range: the run has seeds 0..{config.seeds - 1}")
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     env = envs.make(config.task, physics=config.physics, **options)
+    check_observation_size(env, policy)
     if max_steps is not None:
         env = _shortened(env, max_steps)
     state = jax.tree_util.tree_map(lambda x: x[seed_index:seed_index + 1], policy.agent_state)
