@@ -118,6 +118,9 @@ def test_cli_exits_with_status_2_and_the_message(capsys):
     with pytest.raises(SystemExit) as exit_:
         main(["train", "--agent", "tdmpc2"])
     assert exit_.value.code == 2 and "--task is required" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exit_:  # --set reaches make_agent(..., overrides=)
+        main(["--task", "cartpole-balance", "--agent", "tdmpc2", "--small", "--set", "planner.horizon=0"])
+    assert exit_.value.code == 2 and "horizon" in capsys.readouterr().err
 
 
 def test_evaluation_arguments_are_checked(tmp_path):

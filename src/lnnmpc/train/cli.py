@@ -119,6 +119,7 @@ def run_command(args: argparse.Namespace) -> None:
     if args.command == "train":
         run_train(args)
     elif args.command == "eval":
+        os.environ.setdefault("MUJOCO_GL", "disable")  # dm_control needs no OpenGL to step (no GLFW warnings)
         from lnnmpc.train.evaluate import evaluate
 
         evaluate(args.run, obs=args.obs, episodes=args.episodes, backend=args.backend, checkpoint=args.checkpoint,
