@@ -18,20 +18,24 @@ from lnnmpc.train.references import references
 
 
 class Progress:
-    """One live line on stderr: a bar, environment steps, steps/s and the last evaluation's mean return."""
+    """One live line on stderr: a bar, environment steps (per seed), the speed over the last chunk (environment
+    steps per second per seed; evaluation and checkpoint time included, compilation only on the first chunks)
+    and the last evaluation's mean return."""
 
     def __init__(self, total: int):
-        self.total, self.start, self.last_eval = total, time.perf_counter(), float("nan")
-        self.first_done: int | None = None
+        self.total, self.last_eval, self.rate = total, float("nan"), float("nan")
+        self._last: tuple[int, float] | None = None
 
     def show(self, done: int) -> None:
-        if self.first_done is None:  # a resumed run measures speed from where it started
-            self.first_done, self.start = done, time.perf_counter()
-        rate = (done - self.first_done) / max(time.perf_counter() - self.start, 1e-9)
+        now = time.perf_counter()
+        if self._last is not None and done > self._last[0]:
+            self.rate = (done - self._last[0]) / max(now - self._last[1], 1e-9)
+        if self._last is None or done > self._last[0]:
+            self._last = (done, now)
         width = 30
         filled = int(width * min(done / self.total, 1.0))
         sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done:>9,}/{self.total:,} env steps  "
-                         f"{rate:8.0f} steps/s  last eval {self.last_eval:7.1f}")
+                         f"{self.rate:8.0f} steps/s  last eval {self.last_eval:7.1f}")
         sys.stderr.flush()
 
 
