@@ -65,15 +65,29 @@ def saved_config(run: str, **changes) -> TrainConfig:
 
 
 def append_csv(path: str, rows: list[dict]) -> None:
-    """Appends rows (dicts with the same keys) to a CSV file, writing the header for a new file."""
+    """Appends rows to a CSV file, writing the header for a new file.
+
+    Rows may bring columns the file lacks (the seed phase's train.csv rows have no losses): then the file is
+    rewritten atomically with the union of the columns, earlier rows leaving the new ones empty.
+    """
     if not rows:
         return
-    new = not os.path.exists(path)
-    with open(path, "a", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        if new:
-            writer.writeheader()
+    fields = list(dict.fromkeys(key for row in rows for key in row))
+    if os.path.exists(path):
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            header, old = list(reader.fieldnames or []), list(reader)
+        if set(fields) <= set(header):
+            with open(path, "a", newline="") as f:
+                csv.DictWriter(f, fieldnames=header).writerows(rows)
+            return
+        rows, fields = old + rows, header + [k for k in fields if k not in header]
+    tmp = f"{path}.tmp"
+    with open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
         writer.writerows(rows)
+    os.replace(tmp, path)
 
 
 def read_csv(path: str) -> list[dict]:
