@@ -54,6 +54,15 @@ video: $(STAMP)
 report: $(STAMP)
 	$(PY) -m lnnmpc.train.cli report "$(RUN)"
 
+# make experiment NAME=table5_3 [ARGS="--seeds 3 --agents tdmpc2,cfc-zp-det --steps 200000 --dry-run"]
+#   trains (resumes) the study's grid, evaluates it and writes experiments/results/studies/NAME.{csv,md}
+#   studies: table5_3 table5_4 table5_5 table5_6 fig5_18 fig5_19  (python -m lnnmpc.experiments.run -h)
+.PHONY: experiment
+NAME ?=
+ARGS ?=
+experiment: $(STAMP)
+	$(PY) -m lnnmpc.experiments.run $(NAME) $(ARGS)
+
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks experiments
 

@@ -1,0 +1,128 @@
+"""``python -m lnnmpc.experiments.run NAME``: train, evaluate and aggregate one study of the thesis's chapter 5.
+
+    python -m lnnmpc.experiments.run table5_3 --dry-run              # list the grid and each run's status
+    python -m lnnmpc.experiments.run table5_3 --agents tdmpc2,cfc-zp-det --seeds 3
+    python -m lnnmpc.experiments.run fig5_19 --no-train               # evaluate/aggregate what exists
+    make experiment NAME=table5_4 [ARGS="--seeds 3 --agents tdmpc2"]
+
+Steps, each resumable: (1) every run of the grid (:mod:`lnnmpc.experiments.grid`) that is not finished is
+trained or resumed (``lnnmpc.train`` resumes a folder holding checkpoints); (2) the newest checkpoint of every
+run is evaluated under each of the study's evaluation corruptions (``lnnmpc.evaluate``; planning-horizon studies
+with :func:`lnnmpc.experiments.horizon.evaluate_horizon`), skipping evaluations whose file exists; (3) the
+results are aggregated (:mod:`lnnmpc.experiments.aggregate`) into ``<out>/<NAME>.csv`` and ``<out>/<NAME>.md``
+(default ``experiments/results/studies``). Studies: table5_3, table5_4, table5_5, table5_6, fig5_18, fig5_19.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from lnnmpc.experiments import grid
+from lnnmpc.experiments.aggregate import markdown, study_rows, write_csv
+from lnnmpc.experiments.grid import GridOptions, RunSpec
+from lnnmpc.train.config import ConfigError
+
+DEFAULT_OUT = os.path.join("experiments", "results", "studies")
+
+
+def train_run(spec: RunSpec, steps: int) -> bool:
+    """Trains or resumes a run unless it is finished; returns whether training ran."""
+    if grid.run_status(spec.folder, steps) == "finished":
+        return False
+    import lnnmpc
+
+    lnnmpc.train(spec.config)
+    return True
+
+
+def missing_evaluations(spec: RunSpec, options: GridOptions) -> list[tuple[str, int | None]]:
+    """(corruption text, planning horizon or None) pairs of the newest checkpoint that have no file yet."""
+    steps = grid.checkpoint_steps(spec.folder)
+    if not steps:
+        return []
+    return [(obs, horizon) for obs in spec.condition.eval_obs for horizon in spec.horizons or (None,)
+            if not os.path.exists(grid.eval_file(spec.folder, steps[-1], obs, options.backend, horizon))]
+
+
+def evaluate_run(spec: RunSpec, options: GridOptions) -> int:
+    """Runs the missing evaluations of a run's newest checkpoint; returns how many ran."""
+    todo = missing_evaluations(spec, options)
+    step = grid.checkpoint_steps(spec.folder)[-1] if todo else None
+    for obs, horizon in todo:
+        if horizon is None:
+            import lnnmpc
+
+            lnnmpc.evaluate(spec.folder, obs=obs, episodes=options.episodes, backend=options.backend,
+                            checkpoint=step, out=grid.eval_file(spec.folder, step, obs, options.backend))
+        else:
+            from lnnmpc.experiments.horizon import evaluate_horizon
+
+            evaluate_horizon(spec.folder, horizon, obs=obs, episodes=options.episodes, checkpoint=step)
+    return len(todo)
+
+
+def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -> tuple[str, str]:
+    """Writes ``<out>/<name>.csv`` and ``<out>/<name>.md``; returns their paths."""
+    study = grid.get_study(name)
+    rows = study_rows(study, specs, options.steps, options.backend)
+    csv_path, md_path = os.path.join(out, f"{name}.csv"), os.path.join(out, f"{name}.md")
+    write_csv(csv_path, rows)
+    with open(md_path, "w") as f:
+        f.write(markdown(study, rows))
+    return csv_path, md_path
+
+
+def run_study(name: str, options: GridOptions, *, out: str = DEFAULT_OUT, dry_run: bool = False,
+              train: bool = True, evaluate: bool = True) -> list[str]:
+    """The whole study (module docstring); ``dry_run`` only lists the grid. Returns the lines it printed."""
+    specs = grid.expand(grid.get_study(name), options)
+    if dry_run:
+        lines = [f"{name}: {len(specs)} runs of {options.seeds} seed(s) x {options.steps:,} env steps"]
+        return lines + grid.describe(specs, options)
+    for spec in specs:
+        if train:
+            train_run(spec, options.steps)
+        if evaluate:
+            evaluate_run(spec, options)
+    return [f"wrote {path}" for path in aggregate(name, specs, options, out)]
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(prog="python -m lnnmpc.experiments.run", description=__doc__.split("\n")[0])
+    p.add_argument("name", choices=sorted(grid.STUDIES), help="the study")
+    p.add_argument("--steps", type=int, default=200_000, help="environment steps per run (default 200000)")
+    p.add_argument("--seeds", type=int, default=3, help="seeds per run, trained together (default 3)")
+    p.add_argument("--agents", default=None, help="comma-separated subset of the study's agents")
+    p.add_argument("--envs", type=int, default=1, help="environments per seed (default 1)")
+    p.add_argument("--model-size", type=int, default=5, choices=(1, 5), help="tdmpc2 size in M parameters")
+    p.add_argument("--small", action="store_true", help="CPU smoke-test sizes (not the thesis's setting)")
+    p.add_argument("--episodes", type=int, default=10, help="evaluation episodes per seed (default 10)")
+    p.add_argument("--backend", default="mjx", choices=("mjx", "dm_control"))
+    p.add_argument("--runs-dir", default=GridOptions.runs_dir, help="where run folders live")
+    p.add_argument("--out", default=DEFAULT_OUT, help="where the CSV and Markdown tables go")
+    p.add_argument("--dry-run", action="store_true", help="list the grid and the runs' status, run nothing")
+    p.add_argument("--no-train", action="store_true", help="only evaluate and aggregate what exists")
+    p.add_argument("--aggregate-only", action="store_true", help="only write the tables from existing files")
+    return p.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        agents = None if args.agents is None else tuple(a.strip() for a in args.agents.split(",") if a.strip())
+        options = GridOptions(steps=args.steps, seeds=args.seeds, agents=agents, envs=args.envs,
+                              model_size=args.model_size, small=args.small, runs_dir=args.runs_dir,
+                              episodes=args.episodes, backend=args.backend)
+        lines = run_study(args.name, options, out=args.out, dry_run=args.dry_run,
+                          train=not (args.no_train or args.aggregate_only), evaluate=not args.aggregate_only)
+    except ConfigError as error:
+        sys.stderr.write(f"error: {error}\n")
+        return 2
+    sys.stdout.write("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,172 @@
+"""Study grids, resume decisions and aggregation of lnnmpc.experiments, on fake run folders (no training)."""
+
+import csv
+import os
+
+import numpy as np
+import pytest
+
+import lnnmpc
+from lnnmpc.experiments import grid, run
+from lnnmpc.experiments.aggregate import markdown, newest_eval, read_returns, study_rows, summarize
+from lnnmpc.experiments.thesis import eval_key, tdmpc2_value, thesis_value
+from lnnmpc.train.config import ConfigError
+
+
+def _write(path, rows):
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _fake_run(folder, last_step, checkpoint=True, returns=None, eval_name=None):
+    """A run folder with config.json, eval.csv up to ``last_step`` and optionally a checkpoint at it."""
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, "config.json"), "w") as f:
+        f.write('{"config": {}}')
+    _write(os.path.join(folder, "eval.csv"), [{"env_step": s, "seed": 0, "episode": 0, "return": 1.0}
+                                              for s in (10_000, last_step)])
+    if checkpoint:
+        os.makedirs(os.path.join(folder, "checkpoints", str(last_step)))
+    if returns is not None:
+        _write(os.path.join(folder, "evals", eval_name),
+               [{"env_step": last_step, "seed": s, "episode": e, "return": returns[s][e]}
+                for s in range(len(returns)) for e in range(len(returns[0]))])
+
+
+@pytest.mark.parametrize("name, runs, rows", [("table5_3", 28, 28), ("table5_4", 14, 28), ("table5_5", 7, 21),
+                                              ("table5_6", 7, 21), ("fig5_18", 12, 12), ("fig5_19", 1, 5)])
+def test_study_grid_sizes(tmp_path, name, runs, rows):
+    options = grid.GridOptions(runs_dir=str(tmp_path))
+    specs = grid.expand(grid.get_study(name), options)
+    assert len(specs) == runs
+    assert len({s.folder for s in specs}) == runs
+    assert len(study_rows(grid.get_study(name), specs, options.steps)) == rows
+    assert all(s.config.steps == 200_000 and s.config.seeds == 3 for s in specs)
+
+
+def test_noise_study_folders_and_corruptions(tmp_path):
+    options = grid.GridOptions(runs_dir=str(tmp_path), seeds=2, agents=("tdmpc2",))
+    specs = grid.expand(grid.get_study("table5_4"), options)
+    assert [s.folder for s in specs] == [str(tmp_path / "cartpole-swingup" / "tdmpc2" / "novel-seeds2"),
+                                        str(tmp_path / "cartpole-swingup" / "tdmpc2" / "flicker0.2-noise0.1-seeds2")]
+    assert specs[1].config.obs == {"obs_noise": 0.1, "flicker": 0.2}
+    assert [eval_key(o) for o in specs[1].condition.eval_obs] == [
+        "flicker0.2-noise0.1", "flicker0.2-noise0.2", "flicker0.2-noise0.3"]
+    assert grid.expand(grid.get_study("table5_4"), options) == specs  # deterministic
+    small = grid.GridOptions(runs_dir="r", envs=2, model_size=1, small=True)
+    assert grid.run_folder("r", "walker-run", "tdmpc2", "delay=2", small).endswith("delay2-seeds3-envs2-size1-small")
+    delays = [s.config.obs["delay"] for s in grid.expand(grid.get_study("fig5_18"), options)]
+    assert delays == [3, 6, 10, 1, 2, 3]
+
+
+def test_bad_names_are_refused():
+    with pytest.raises(ConfigError, match="ltc-zp-stoch.*its agents: tdmpc2, ltc-zp-det"):
+        grid.expand(grid.get_study("fig5_18"), grid.GridOptions(agents=("ltc-zp-stoch",)))
+    with pytest.raises(ConfigError, match="unknown study 'table9'.*table5_3"):
+        grid.get_study("table9")
+    with pytest.raises(ConfigError, match="seeds must be an integer >= 1, got 0"):
+        grid.GridOptions(seeds=0)
+
+
+def test_run_status(tmp_path):
+    assert grid.run_status(str(tmp_path / "none"), 200_000) == "new"
+    _fake_run(str(tmp_path / "done"), 200_016)
+    _fake_run(str(tmp_path / "short"), 150_000)
+    _fake_run(str(tmp_path / "nockpt"), 200_016, checkpoint=False)
+    assert grid.run_status(str(tmp_path / "done"), 200_000) == "finished"
+    assert grid.run_status(str(tmp_path / "short"), 200_000) == "partial"
+    assert grid.run_status(str(tmp_path / "nockpt"), 200_000) == "partial"
+    assert grid.checkpoint_steps(str(tmp_path / "done")) == [200_016]
+
+
+def test_rerun_skips_finished_runs_and_resumes_the_others(tmp_path, monkeypatch):
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=50_000, agents=("tdmpc2", "cfc-zp-det"))
+    specs = grid.expand(grid.get_study("table5_5"), options)
+    _fake_run(specs[0].folder, 50_000)  # finished
+    _fake_run(specs[1].folder, 20_000)  # partial: resumed through lnnmpc.train with the same folder
+    trained = []
+    monkeypatch.setattr(lnnmpc, "train", lambda config: trained.append(config))
+    lines = run.run_study("table5_5", options, out=str(tmp_path / "out"), evaluate=False)
+    assert [c.out for c in trained] == [specs[1].folder]
+    assert trained[0] == specs[1].config
+    assert lines == [f"wrote {tmp_path / 'out' / 'table5_5.csv'}", f"wrote {tmp_path / 'out' / 'table5_5.md'}"]
+    assert run.missing_evaluations(specs[0], options) == [(o, None) for o in specs[0].condition.eval_obs]
+    os.makedirs(os.path.join(specs[0].folder, "evals"))
+    open(grid.eval_file(specs[0].folder, 50_000, "noise=0.2"), "w").close()
+    assert [o for o, _ in run.missing_evaluations(specs[0], options)] == ["noise=0.1", "noise=0.3"]
+
+
+def test_dry_run_lists_the_grid(tmp_path, capsys):
+    assert run.main(["fig5_18", "--dry-run", "--runs-dir", str(tmp_path), "--seeds", "2"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "fig5_18: 12 runs of 2 seed(s) x 200,000 env steps"
+    assert len(out) == 13 and all(line.startswith("[new     ]") for line in out[1:])
+    assert not os.listdir(tmp_path)
+    assert run.main(["fig5_18", "--agents", "cfc-op-det", "--dry-run"]) == 2
+
+
+def test_summarize_against_hand_computation():
+    returns = np.array([[100.0, 200.0, 300.0], [400.0, 500.0, 600.0]])
+    s = summarize(returns)
+    assert s["mean"] == pytest.approx(350.0)
+    assert s["std"] == pytest.approx(np.sqrt(np.mean((returns - 350.0) ** 2)))
+    assert s["std_seeds"] == pytest.approx(150.0)
+    assert (s["seeds"], s["episodes"]) == (2, 3)
+    with pytest.raises(ValueError, match="shape"):
+        summarize(np.zeros(3))
+
+
+def test_thesis_values():
+    assert thesis_value("cartpole-swingup", "remove_vel=1", "cfc-zp-det").std is None
+    ref = thesis_value("cartpole-swingup", "flicker=0.2,noise=0.3", "ltc-op-stoch")
+    assert (ref.mean, ref.std, ref.source) == (721.52, 78.38, "Table 5.4")
+    assert tdmpc2_value("acrobot-swingup", "").mean == 329.0
+    assert thesis_value("walker-run", "delay=2", "tdmpc2") is None
+
+
+def test_aggregation_and_markdown(tmp_path):
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=200_000, seeds=2, agents=("tdmpc2", "cfc-op-det"))
+    study = grid.get_study("table5_4")
+    specs = grid.expand(study, options)
+    noisy = specs[2].folder  # tdmpc2 on noise0.1-flicker0.2
+    _fake_run(noisy, 200_016, returns=[[300.0, 400.0], [500.0, 600.0]],
+              eval_name="mjx-flicker0.2-noise0.2-200016.csv")
+    _write(os.path.join(noisy, "evals", "mjx-flicker0.2-noise0.2-100000.csv"),
+           [{"env_step": 100_000, "seed": 0, "episode": 0, "return": 1.0}])
+    assert newest_eval(noisy, "noise=0.2,flicker=0.2", "mjx", None).endswith("-200016.csv")
+    rows = study_rows(study, specs, options.steps)
+    assert len(rows) == 2 + 2 * 3
+    row = next(r for r in rows if r["run"] == noisy and r["eval_obs"] == "flicker0.2-noise0.2")
+    assert (row["env_step"], row["seeds"], row["episodes"], row["mean"]) == (200_016, 2, 2, 450.0)
+    assert row["std"] == pytest.approx(np.std([300, 400, 500, 600]))
+    assert row["std_seeds"] == pytest.approx(100.0)
+    assert (row["thesis_mean"], row["thesis_std"], row["tdmpc2_mean"]) == (353.63, 76.27, 353.63)
+    assert row["status"] == "finished"
+    text = markdown(study, rows)
+    assert "| cartpole-swingup | flicker0.2-noise0.1 | flicker0.2-noise0.2 | tdmpc2 | 200,016 | 2 × 2 | 450.0 ± " \
+           "111.8 | 100.0 | 353.6 ± 76.3 | 353.6 ± 76.3 |" in text
+    assert text.count("not yet run") == 7
+    assert "| novel | novel | cfc-op-det | not yet run |  |  |  | 868.3 ± 2.1 | 193.2 ± 13.7 |" in text
+    paths = run.aggregate("table5_4", specs, options, str(tmp_path / "out"))
+    with open(paths[0], newline="") as f:
+        assert len(list(csv.DictReader(f))) == 8
+
+
+def test_horizon_rows_carry_planner_time(tmp_path):
+    options = grid.GridOptions(runs_dir=str(tmp_path), seeds=1)
+    study = grid.get_study("fig5_19")
+    specs = grid.expand(study, options)
+    folder = specs[0].folder
+    _write(os.path.join(folder, "evals", "horizon3-clean-200016.csv"),
+           [{"env_step": 200_016, "seed": 0, "episode": e, "return": 100.0 * e, "planner_ms": ms}
+            for e, ms in enumerate((2.0, 3.0, 10.0))])
+    step, returns, timing = read_returns(os.path.join(folder, "evals", "horizon3-clean-200016.csv"))
+    assert step == 200_016 and returns.shape == (1, 3) and timing.tolist() == [2.0, 3.0, 10.0]
+    rows = study_rows(study, specs, options.steps)
+    assert [r["horizon"] for r in rows] == [1, 3, 5, 10, 16]
+    assert rows[1]["planner_ms"] == 3.0 and rows[1]["mean"] == 100.0 and rows[0]["mean"] == ""
+    assert "| acrobot-swingup | clean | clean | cfc-zp-det | 3 | 200,016 | 1 × 3 | 100.0 ± 81.6 | 0.0 | 3.0 ± " \
+           in markdown(study, rows)
