@@ -1,0 +1,62 @@
+"""Deterministic episodes of a trained agent, recording what the representation analyses need (JAX).
+
+:func:`rollout` plays ``episodes`` episodes of one seed's agent on an environment (the evaluation protocol:
+MPPI without exploration noise) and returns, per episode and agent step t (arrays (E, T, ...)):
+
+* ``latent``: the agent's latent after reading o_t (LNN agents: the encoder state h_t = z_t from the acting
+  carry; ``tdmpc2``: its encoder applied to o_t);
+* ``obs`` (the delivered, corrupted observation), ``clean_obs`` (dm_control's uncorrupted observation of the
+  current physics state), ``qpos``, ``qvel`` (true physical state), ``action`` a_t, ``dt``, ``reward``.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _latent(agent, state, carry, obs):
+    """Latents (n, N): the LNN carry's h, else the agent's per-observation encoder."""
+    if hasattr(carry, "h"):
+        return carry.h
+    return agent._apply(state.params, obs, method="encode")
+
+
+def rollout(agent, state, env, key: jax.Array, episodes: int, steps: int | None = None) -> dict[str, np.ndarray]:
+    """Records of ``episodes`` deterministic episodes (module docstring); ``state``: one seed's agent state;
+    ``steps``: agent steps per episode (default the whole episode)."""
+    n = episodes
+    carries = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), agent.initial_carry())
+
+    def body(loop_carry, k):
+        s, carry = loop_carry
+        act = jax.vmap(lambda c, o, dt, kk, f: agent.act(state, c, o, dt, kk, explore=False, first_step=f))
+        action, carry = act(carry, s.obs, s.dt, jax.random.split(k, n), s.t == 0)
+        nxt = jax.vmap(env.step)(s, action)
+        record = {"latent": _latent(agent, state, carry, s.obs), "obs": s.obs, "clean_obs": s.clean_obs,
+                  "qpos": s.physics.qpos, "qvel": s.physics.qvel, "action": action, "dt": s.dt,
+                  "reward": nxt.reward}
+        return (nxt, carry), record
+
+    def episodes_from(key):  # reset and scan in one compiled program (eager MJX resets are slow)
+        k_reset, k_act = jax.random.split(key)
+        env_state = jax.vmap(env.reset)(jax.random.split(k_reset, n))
+        return jax.lax.scan(body, (env_state, carries), jax.random.split(k_act, steps or env.episode_length))[1]
+
+    records = jax.jit(episodes_from)(key)
+    return {name: np.swapaxes(np.asarray(value), 0, 1) for name, value in records.items()}
+
+
+def op_model_functions(agent, state):
+    """(predict, step) of an OP agent's world model for :func:`lnnmpc.analysis.metrics.k_step_errors`:
+    predict(z (S, N), a (S, A)) -> predicted next observation (mean) (S, d); step(z, a) -> next latent (S, N),
+    the planner's mean transition (the prediction read by the encoder with Δt = 1, Algorithm 5)."""
+    if getattr(getattr(agent.config, "model", None), "objective", None) != "op":
+        raise ValueError(f"k-step observation prediction needs an OP agent, got {type(agent).__name__} with "
+                         f"config {getattr(agent.config, 'model', None)}")
+    params = state.params
+    predict = jax.jit(lambda z, a: agent._apply(params, z, a, method="predict")[0])
+    step = jax.jit(lambda z, a: agent._apply(params, z, a, method="transition"))
+    return (lambda z, a: np.asarray(predict(jnp.asarray(z, jnp.float32), jnp.asarray(a, jnp.float32))),
+            lambda z, a: np.asarray(step(jnp.asarray(z, jnp.float32), jnp.asarray(a, jnp.float32))))

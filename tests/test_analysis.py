@@ -1,0 +1,118 @@
+"""Representation analyses: float64 references on synthetic data, known matrices, a toy model; the report on a
+checkpoint of an untrained small OP agent (short episodes, no UMAP) through the JAX glue."""
+
+import csv
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from lnnmpc.analysis import metrics, report
+from lnnmpc.analysis.projection import log_speed
+from lnnmpc.train import runfolder
+from lnnmpc.train.checkpoint import save_checkpoint
+from lnnmpc.train.compat import state_signature
+from lnnmpc.train.config import TrainConfig
+from lnnmpc.train.trainer import build_loop
+
+
+def test_ridge_matches_an_independent_float64_solution_and_recovers_a_quadratic_state():
+    rng = np.random.default_rng(0)
+    z = rng.normal(size=(400, 6))
+    x = metrics.quadratic_features(z)
+    states = np.stack([2 * z[:, 0] - z[:, 3] ** 2, z[:, 2] ** 2 + 3.0], axis=1)
+    alpha = 2.5
+    w, b = metrics.ridge_fit(x, states, alpha)
+    xc, yc = x - x.mean(0), states - states.mean(0)  # reference: least squares on the augmented system
+    a = np.vstack([xc, np.sqrt(alpha) * np.eye(x.shape[1])])
+    w_ref = np.linalg.lstsq(a, np.vstack([yc, np.zeros((x.shape[1], 2))]), rcond=None)[0]
+    np.testing.assert_allclose(w, w_ref, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(b, states.mean(0) - x.mean(0) @ w_ref, atol=1e-10)
+    r, predicted = metrics.ridge_pearson(z, states, alpha=1e-6)
+    np.testing.assert_allclose(r, 1.0, atol=1e-9)
+    np.testing.assert_allclose(predicted, states, atol=1e-5)
+    noise = metrics.ridge_pearson(z, rng.normal(size=(400, 1)))[0]
+    assert abs(noise[0]) < 0.3
+
+
+def test_pearson_matches_numpy_and_is_nan_for_a_constant_column():
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(50, 3)), rng.normal(size=(50, 3))
+    expected = [np.corrcoef(a[:, i], b[:, i])[0, 1] for i in range(3)]
+    np.testing.assert_allclose(metrics.pearson(a, b), expected, rtol=1e-12)
+    assert np.isnan(metrics.pearson(np.ones((5, 1)), np.arange(5.0)[:, None])[0])
+
+
+def test_effective_rank_of_known_matrices():
+    rng = np.random.default_rng(2)
+    assert metrics.effective_rank(np.outer(rng.normal(size=30), rng.normal(size=8))) == pytest.approx(1.0, abs=1e-9)
+    assert metrics.effective_rank(np.eye(5)) == pytest.approx(5.0)
+    assert metrics.effective_rank(np.diag([3.0, 1.0])) == pytest.approx(np.exp(-(0.75 * np.log(0.75)
+                                                                                + 0.25 * np.log(0.25))))
+    with pytest.raises(ValueError, match="non-zero"):
+        metrics.effective_rank(np.zeros((3, 3)))
+
+
+def test_k_step_errors_of_a_biased_toy_model_accumulate_the_bias():
+    """True o_{t+1} = o_t + a_t; the model adds a bias b each step, so the j-th step is off by j·b."""
+    T, bias = 40, 0.1
+    actions = np.sin(np.arange(T))[:, None]
+    obs = np.concatenate([[[0.0]], np.cumsum(actions, axis=0)[:-1]])
+    model = lambda z, a: z + a + bias
+    errors = metrics.k_step_errors(model, model, obs, actions, obs, k=10)
+    assert errors.shape == (T - 10, 10)
+    np.testing.assert_allclose(errors, np.broadcast_to(((np.arange(1, 11) * bias) ** 2), errors.shape), atol=1e-12)
+    exact = lambda z, a: z + a
+    assert np.abs(metrics.k_step_errors(exact, exact, obs, actions, obs, k=3, stride=5)).max() < 1e-12
+    rows = report.prediction_rows(np.stack([errors, 2 * errors]), 10)
+    assert rows[0] == {"metric": "one-step", "mean": pytest.approx(1.5 * bias**2), "std": pytest.approx(0.5 * bias**2),
+                       "episodes": 2}
+
+
+def test_cartpole_phase_split():
+    angle = np.concatenate([np.linspace(np.pi, 0.5, 60), np.full(10, 0.1), [0.5], np.full(40, -0.05)])
+    assert metrics.balance_start(angle, threshold=0.3, hold=25) == 71  # the short upright run is too short
+    assert metrics.balance_start(np.full(30, 3.0)) == 30
+    assert metrics.balance_start(np.full(30, 2 * np.pi + 0.1), hold=5) == 0  # wrapped
+    masks = report.phase_masks("cartpole-swingup", np.stack([np.zeros(30), np.r_[np.full(10, 3.0), np.zeros(20)]],
+                                                            axis=-1)[None], hold=5)
+    assert masks["swingup"][0].sum() == 10 and masks["balance"][0, 10:].all()
+    assert list(report.phase_masks("walker-run", np.zeros((2, 7, 9)))) == ["all"]
+    np.testing.assert_allclose(log_speed(np.array([-1.0, 0.0])), [np.log(1.001), np.log(1e-3)])
+
+
+def _untrained_run(path) -> str:
+    """A run folder holding one checkpoint of an untrained small cfc-op-det agent (no training needed)."""
+    config = TrainConfig(task="cartpole-swingup", agent="cfc-op-det", obs="remove_vel=1", small=True, seeds=1,
+                         steps=1000, seed_steps=0, replay_capacity=64, out=str(path), compile_cache="")
+    loop = build_loop(config)
+    os.makedirs(path)
+    runfolder.write_config(str(path), config, {"state_signature": state_signature(loop, 1)})
+    keys = jax.random.split(jax.random.key(0), 1)
+    key_shape = jax.random.key_data(keys).shape[1:]  # zeros for all but the agent: only the agent is analysed
+    zeros = jax.tree_util.tree_map(lambda x: jax.random.wrap_key_data(jnp.zeros(x.shape + key_shape, jnp.uint32))
+                                   if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else jnp.zeros(x.shape, x.dtype),
+                                   jax.eval_shape(jax.vmap(loop.init), keys))
+    save_checkpoint(str(path), 0, zeros.replace(agent=jax.jit(jax.vmap(loop.agent.init))(keys)), {"env_steps": 0})
+    return str(path)
+
+
+def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
+    run = _untrained_run(tmp_path / "run")
+    out = report.analyse(run, episodes=2, length=40, use_umap=False)
+    assert out == os.path.join(run, "analysis", "0")
+    assert sorted(os.listdir(out)) == ["correlation-swingup.png", "correlation.csv", "effective_rank.csv",
+                                       "effective_rank.png", "prediction.png", "prediction_error.csv"]
+    with open(os.path.join(out, "correlation.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [r["variable"] for r in rows] == list(report.STATE_NAMES["cartpole"])
+    assert {r["phase"] for r in rows} == {"swingup"} and rows[0]["samples"] == "80"
+    with open(os.path.join(out, "prediction_error.csv")) as f:
+        errors = list(csv.DictReader(f))
+    assert [r["metric"] for r in errors] == ["one-step", "step 10", "mean over 10 steps"]
+    assert all(np.isfinite(float(r["mean"])) and r["episodes"] == "2" for r in errors)
+    with open(os.path.join(out, "effective_rank.csv")) as f:
+        rank = next(csv.DictReader(f))
+    assert rank["env_step"] == "0" and 1.0 <= float(rank["effective_rank"]) <= 16
