@@ -29,7 +29,9 @@ def planner_times(agent, state, env, key: jax.Array, calls: int = 30) -> np.ndar
     env_state = jax.jit(env.reset)(k_reset)
     act = jax.jit(lambda s, c, o, dt, k: agent.act(s, c, o, dt, k, explore=False, first_step=False))
     carry = agent.initial_carry()
-    jax.block_until_ready(act(state, carry, env_state.obs, env_state.dt, k_act))
+    for _ in range(2):  # compile for the initial carry and for the carry act returns (its types may differ)
+        action, carry = act(state, carry, env_state.obs, env_state.dt, k_act)
+    jax.block_until_ready(action)
     times = []
     for k in jax.random.split(k_act, calls):
         start = time.perf_counter()
