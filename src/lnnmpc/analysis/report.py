@@ -21,13 +21,13 @@ Plays deterministic episodes with one seed's agent under the run's evaluation co
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 
 import numpy as np
 
 from lnnmpc.analysis import metrics
+from lnnmpc.train import runfolder
 
 STATE_NAMES = {"cartpole": ("cart position", "pole cos", "pole sin", "cart velocity", "pole angular velocity")}
 
@@ -72,12 +72,8 @@ def prediction_rows(errors: np.ndarray, k: int) -> list[dict]:
 
 
 def write_csv(path: str, rows: list[dict]) -> None:
-    if not rows:
-        return
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    if rows:
+        runfolder.write_csv(path, list(rows[0]), rows)
 
 
 def _figure(rows: int, cols: int, size: float = 3.0):

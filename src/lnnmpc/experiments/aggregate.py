@@ -24,6 +24,7 @@ import numpy as np
 
 from lnnmpc.experiments.grid import RunSpec, Study, eval_file, run_status
 from lnnmpc.experiments.thesis import tdmpc2_value, thesis_value
+from lnnmpc.train import runfolder
 from lnnmpc.train.config import obs_tag, parse_obs
 
 FIELDS = ("study", "source", "task", "train_obs", "eval_obs", "agent", "horizon", "status", "run", "env_step",
@@ -103,10 +104,7 @@ def _row(study: Study, spec: RunSpec, obs: str, horizon: int | None, steps: int,
 
 def write_csv(path: str, rows: list[dict]) -> None:
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
+    runfolder.write_csv(path, FIELDS, rows)
 
 
 def _pm(mean, std) -> str:

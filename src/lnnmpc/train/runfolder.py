@@ -82,6 +82,11 @@ def append_csv(path: str, rows: list[dict]) -> None:
                 csv.DictWriter(f, fieldnames=header).writerows(rows)
             return
         rows, fields = old + rows, header + [k for k in fields if k not in header]
+    write_csv(path, fields, rows)
+
+
+def write_csv(path: str, fields: list[str], rows: list[dict]) -> None:
+    """Writes a whole CSV file atomically (a temporary file renamed over ``path``)."""
     tmp = f"{path}.tmp"
     with open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=fields)
@@ -107,9 +112,4 @@ def truncate_csv(path: str, max_env_step: int) -> None:
     if not rows:
         os.remove(path)
         return
-    tmp = f"{path}.tmp"
-    with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(rows)
-    os.replace(tmp, path)
+    write_csv(path, fields, rows)
