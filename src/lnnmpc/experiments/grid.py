@@ -19,7 +19,7 @@ import csv
 import dataclasses
 import os
 
-from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag, parse_obs
+from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
 
 STATUSES = ("new", "partial", "finished")
 
@@ -92,11 +92,9 @@ class GridOptions:
 
     def __post_init__(self):
         for name in ("steps", "seeds", "envs", "episodes"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
-        if self.backend not in ("mjx", "dm_control"):
-            raise ConfigError(f"unknown backend {self.backend!r}; known: mjx, dm_control")
+            require_int(name, getattr(self, name), 1)
+        if self.backend not in BACKENDS:
+            raise ConfigError(f"unknown backend {self.backend!r}; known: {', '.join(BACKENDS)}")
         if self.agents is not None:
             object.__setattr__(self, "agents", tuple(self.agents))
 

@@ -15,7 +15,7 @@ import numpy as np
 from lnnmpc import envs
 from lnnmpc.agents.registry import make_agent
 from lnnmpc.train import runfolder
-from lnnmpc.train.config import obs_tag, parse_obs
+from lnnmpc.train.config import obs_tag, parse_obs, require_int
 from lnnmpc.train.evaluate import load_policy
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 
@@ -46,8 +46,7 @@ def evaluate_horizon(run: str, horizon: int, *, obs: str | dict | None = None, e
     """Plays ``episodes`` deterministic episodes per seed with planning horizon ``horizon``; writes a CSV
     (env_step, seed, episode, return, horizon, obs, planner_ms: one timed decision per row) and returns its path
     (default ``<run>/evals/horizon<H>-<obs tag>-<step>.csv``)."""
-    if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
-        raise ValueError(f"horizon must be an integer >= 1, got {horizon!r}")
+    require_int("horizon", horizon, 1)
     policy = load_policy(run, checkpoint)
     config = policy.config
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)

@@ -30,6 +30,9 @@ RESUMABLE_CHANGES = ("steps", "name", "runs_dir", "checkpoint_every", "keep_chec
                      "tensorboard", "compile_cache", "overrides")
 
 
+BACKENDS = ("mjx", "dm_control")  # evaluation backends: MJX on the device, dm_control's simulator on the CPU
+
+
 class ConfigError(ValueError):
     """A configuration value is invalid (the message names it and the allowed values)."""
 
@@ -160,12 +163,12 @@ class TrainConfig:
             raise ConfigError(f"model_size must be 1 or 5 (million parameters), got {self.model_size!r}")
         for name in ("seeds", "steps", "envs", "eval_every", "eval_episodes", "checkpoint_every",
                      "keep_checkpoints", "batch_size"):
-            _require_int(name, getattr(self, name), 1)
-        _require_int("seed_steps", self.seed_steps, 0)
-        _require_int("seed", self.seed, 0)
+            require_int(name, getattr(self, name), 1)
+        require_int("seed_steps", self.seed_steps, 0)
+        require_int("seed", self.seed, 0)
         for name in ("replay_capacity", "devices"):
             if getattr(self, name) is not None:
-                _require_int(name, getattr(self, name), 1)
+                require_int(name, getattr(self, name), 1)
         if self.steps < self.seed_steps:
             raise ConfigError(f"steps ({self.steps}) must be >= seed_steps ({self.seed_steps}): the budget "
                               "includes the random seed phase")
@@ -195,7 +198,8 @@ class TrainConfig:
         return {k: v for k, v in self.to_dict().items() if k not in RESUMABLE_CHANGES + ("out",)}
 
 
-def _require_int(name: str, value: Any, minimum: int) -> None:
+def require_int(name: str, value: Any, minimum: int) -> None:
+    """Raise ConfigError unless ``value`` is an integer >= ``minimum`` (bools are rejected)."""
     if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
         raise ConfigError(f"{name} must be an integer >= {minimum}, got {value!r}")
 

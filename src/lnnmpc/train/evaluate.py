@@ -25,12 +25,10 @@ from lnnmpc import envs
 from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
 from lnnmpc.train.compat import check_layout, state_signature
-from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag, parse_obs
+from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.sharding import SeedPlacement
 from lnnmpc.train.trainer import build_loop, enable_compile_cache
-
-BACKENDS = ("mjx", "dm_control")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,8 +101,7 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
-    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
-        raise ConfigError(f"episodes must be an integer >= 1, got {episodes!r}")
+    require_int("episodes", episodes, 1)
     config = runfolder.saved_config(run)
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     step = choose_checkpoint(run, checkpoint)
