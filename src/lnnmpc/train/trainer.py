@@ -341,7 +341,8 @@ def _first_non_finite(metrics: dict) -> tuple[int, int, str] | None:
         values = np.asarray(values)
         bad = ~np.isfinite(values.reshape(values.shape[0], values.shape[1], -1)).all(axis=2)
         if bad.any():
-            seed, index = np.argwhere(bad)[np.argmin(np.argwhere(bad)[:, 1])]
+            where = np.argwhere(bad)  # (n, 2) rows of (seed, iteration)
+            seed, index = where[np.argmin(where[:, 1])]
             if first is None or index < first[1]:
                 first = (int(seed), int(index), name)
     return first
