@@ -18,6 +18,7 @@ environment step, seed and metric; the newest checkpoint (written before the bad
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -41,6 +42,7 @@ from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.sharding import SeedPlacement, device_count_for
 
 MAX_CHUNK = 1000  # iterations per compiled training chunk
+TIMING_FILE = "timing.csv"  # wall seconds of each phase (kept apart from train.csv, which is deterministic)
 
 
 class TrainingDiverged(RuntimeError):
@@ -208,7 +210,7 @@ class _Run:
         if self.setup.resume_step is not None:
             self.ts, self.counters = restore_checkpoint(self.run, self.setup.resume_step, self.ts)
             sys.stderr.write(f"resuming {self.run} at {self.counters['env_steps']:,} env steps\n")
-        for name in ("train.csv", "eval.csv"):  # rows after the checkpoint (or all, starting afresh) go
+        for name in ("train.csv", "eval.csv", TIMING_FILE):  # rows after the checkpoint (or all, starting afresh) go
             runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if
                                    self.setup.resume_step is not None else -1)
         start = time.perf_counter()
@@ -228,9 +230,13 @@ class _Run:
         if not n["seeded"]:
             seed_iterations = math.ceil(c.seed_steps / self.setup.per_iteration)
             if seed_iterations:
-                ts, out = self.chunk_fn("seed_chunk", seed_iterations)(self.ts)
-                rows = self._account(out)
-                ts, metrics = self.chunk_fn("update_burst", seed_iterations * c.envs)(ts)
+                with self._timed("seed_phase") as timed:
+                    ts, out = self.chunk_fn("seed_chunk", seed_iterations)(self.ts)
+                    rows = self._account(out)
+                    timed["env_steps"] = n["env_steps"]
+                with self._timed("update_burst"):
+                    ts, metrics = self.chunk_fn("update_burst", seed_iterations * c.envs)(ts)
+                    jax.block_until_ready(ts)
                 self._commit(ts, rows, metrics, first_step=None)
             n["seeded"] = True
             self._after_chunk()
@@ -241,8 +247,10 @@ class _Run:
                                  f"saved. Continue with: make train RESUME={self.run}\n")
                 raise KeyboardInterrupt
             first = n["env_steps"]
-            ts, out = self.chunk_fn("train_chunk", self.setup.chunk)(self.ts)
-            rows = self._account(out)
+            with self._timed("train_chunk") as timed:
+                ts, out = self.chunk_fn("train_chunk", self.setup.chunk)(self.ts)
+                rows = self._account(out)
+                timed["env_steps"] = n["env_steps"] - first
             self._commit(ts, rows, out, first_step=first)
             self._after_chunk()
         if n["last_eval"] != n["env_steps"]:
@@ -303,7 +311,23 @@ class _Run:
         if self.logger:
             self.logger.train_rows(rows)
 
+    @contextlib.contextmanager
+    def _timed(self, phase: str):
+        """Appends (env_step at the end, phase, wall seconds, env steps per seed done, their rate) to
+        timing.csv; the body may set ``env_steps``. The first call of each compiled program includes compiling."""
+        info, start = {"env_steps": 0}, time.perf_counter()
+        yield info
+        seconds = time.perf_counter() - start
+        runfolder.append_csv(os.path.join(self.run, TIMING_FILE), [{
+            "env_step": self.counters["env_steps"], "phase": phase, "seconds": round(seconds, 4),
+            "env_steps_per_seed": info["env_steps"],
+            "env_steps_per_s_all_seeds": round(info["env_steps"] * self.config.seeds / max(seconds, 1e-9), 2)}])
+
     def _evaluate(self) -> None:
+        with self._timed("evaluate"):
+            self._evaluate_now()
+
+    def _evaluate_now(self) -> None:
         n = self.counters
         eval_key, key = jax.random.split(jax.random.wrap_key_data(jnp.asarray(n["eval_key"], jnp.uint32)))
         n["eval_key"], n["last_eval"] = _key_list(eval_key), n["env_steps"]
@@ -318,6 +342,10 @@ class _Run:
         report.write_reports(self.run, self.counters)
 
     def _checkpoint(self) -> None:
+        with self._timed("checkpoint"):
+            self._checkpoint_now()
+
+    def _checkpoint_now(self) -> None:
         n = self.counters
         n["last_checkpoint"] = n["env_steps"]
         save_checkpoint(self.run, n["env_steps"], self.ts, dict(n), keep=self.config.keep_checkpoints)

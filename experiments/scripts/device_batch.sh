@@ -1,0 +1,73 @@
+#!/usr/bin/env bash
+# Several training runs side by side on one GPU machine, over chained calls of the `device` tool.
+#
+#   device_batch.sh start JOBS SECONDS REPORT   launch every job of the file JOBS (each under `timeout -s TERM
+#                                               SECONDS`, in its own session so that it outlives the call), then
+#                                               report after REPORT seconds or when all have ended
+#   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
+#
+# JOBS: one line per run, "<name> <trainer arguments>" (lines starting with # are skipped); each becomes
+#   python3 -m lnnmpc.train.cli train <arguments> --out runs/batch/<name> --compile-cache runs/jaxcache
+# A run stopped by its timeout saves a checkpoint after its running chunk (SIGTERM), so what it measured is kept.
+# Each report prints every run's progress line and packs the run folders without checkpoints, the logs and
+# nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
+# The GPU is shared through CUDA MPS when the machine has it (MPS=0 turns that off); each process takes
+# MEM_FRACTION (default 0.9 / number of jobs) of the GPU memory.
+set -u
+BATCH=runs/batch
+action=${1:?start or wait}
+shift
+
+report_after() {
+    local end=$(($(date +%s) + $1))
+    while [ "$(date +%s)" -lt "$end" ] && pgrep -f "lnnmpc.train.cli train" >/dev/null; do sleep 5; done
+    echo "=== $(date -u +%T) ($(($(date +%s) - $(cat $BATCH/started))) s since start)"
+    for log in "$BATCH"/*.log; do
+        printf '%-34s %s\n' "$(basename "$log" .log)" "$(tr '\r' '\n' <"$log" | grep '^\[' | tail -1 | cut -c1-110)"
+        tr '\r' '\n' <"$log" | grep -v -E '^\s*$|^\[' | tail -1 | cut -c1-150
+    done
+    grep -l -E "Traceback|Error" "$BATCH"/*.log 2>/dev/null | while read -r bad; do
+        echo "--- $bad"; tail -15 "$bad"; done
+    nvidia-smi --query-gpu=utilization.gpu,memory.used,memory.total --format=csv,noheader 2>/dev/null \
+        | tee "$BATCH/nvidia-smi.txt"
+    if [ -n "${OUT:-}" ]; then
+        tar czf "$OUT/results.tar.gz" --exclude=checkpoints -C "$BATCH" .
+    fi
+}
+
+case $action in
+start)
+    jobs=${1:?JOBS file}
+    seconds=${2:?SECONDS}
+    report=${3:?REPORT}
+    mkdir -p "$BATCH" runs/jaxcache
+    date +%s >"$BATCH/started"
+    count=$(grep -c -v -E '^\s*(#|$)' "$jobs")
+    export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(python3 -c "print(round(0.9 / $count, 3))")}
+    if [ "${MPS:-1}" = 1 ] && command -v nvidia-cuda-mps-control >/dev/null; then
+        nvidia-cuda-mps-control -d && sleep 1
+        if python3 -c "import jax, jax.numpy as jnp; assert float(jnp.ones(4).sum()) == 4.0" 2>/dev/null; then
+            echo "CUDA MPS on" | tee "$BATCH/mps.txt"
+        else
+            echo quit | nvidia-cuda-mps-control
+            echo "CUDA MPS failed a JAX check: off" | tee "$BATCH/mps.txt"
+        fi
+    else
+        echo "CUDA MPS not used" | tee "$BATCH/mps.txt"
+    fi
+    grep -v -E '^\s*(#|$)' "$jobs" | while read -r name args; do
+        # shellcheck disable=SC2086  # the arguments are meant to split
+        setsid nohup timeout -s TERM "$seconds" python3 -m lnnmpc.train.cli train $args --out "$BATCH/$name" \
+            --compile-cache runs/jaxcache >"$BATCH/$name.log" 2>&1 </dev/null &
+        echo "$name: $args" | tee -a "$BATCH/commands.txt"
+    done
+    report_after "$report"
+    ;;
+wait)
+    report_after "${1:?REPORT}"
+    ;;
+*)
+    echo "unknown action $action (start or wait)" >&2
+    exit 2
+    ;;
+esac
