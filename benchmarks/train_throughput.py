@@ -1,8 +1,9 @@
-"""TD-MPC2 training speed: act latency, update latency, env step, and end-to-end chunks versus seeds.
+"""Training speed of one agent (``--agent``: tdmpc2 or a liquid variant): act, update and env step latency,
+and end-to-end chunks versus seeds.
 
 For each task and number of seeds (vmap), times with compile excluded (medians over ``--repeats``):
 * ``act_ms``: one MPPI act step for every seed (vmap over seeds, one environment each);
-* ``update_ms``: one update (batch 256, horizon 3) for every seed;
+* ``update_ms``: one update (batch 256; the agent's training window) for every seed;
 * ``chunk_env_steps_per_s``: a training chunk of ``--chunk`` iterations (act -> env step -> insert -> update),
   environment steps per second summed over seeds.
 Writes JSON (device, versions, config, results), rewritten after each measurement.
@@ -62,6 +63,9 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     update = jax.jit(jax.vmap(loop._update))
     record["update_ms"] = 1e3 * time_call(update, ts, jax.random.split(jax.random.key(2), seeds),
                                           repeats=args.repeats)["median_s"]
+    if args.skip_chunk:
+        record["parts_ms"] = {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]}
+        return record
     train = jax.jit(jax.vmap(loop.train_chunk, in_axes=(0, None)), static_argnums=1)
     chunk_t = time_call(train, ts, args.chunk, repeats=max(1, args.repeats // 3))
     env_steps = seeds * args.chunk * envs * loop.env.action_repeat
@@ -85,6 +89,8 @@ def main(argv=None):
     parser.add_argument("--chunk", type=int, default=200, help="iterations per timed training chunk")
     parser.add_argument("--fill", type=int, default=600, help="random iterations to fill the replay first")
     parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--skip-chunk", action="store_true",
+                        help="time act, env step and update only (no end-to-end chunk: saves its compilation)")
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
@@ -95,10 +101,10 @@ def main(argv=None):
             record = measure(task, seeds, envs, args)
             payload["results"].append(record)
             write_json(out, payload)
-            print(f"{task:18s} seeds={seeds:2d} envs={envs:2d}  env {record['env_ms']:6.2f} ms"
-                  f"  act {record['act_ms']:8.2f} ms  update {record['update_ms']:8.2f} ms"
-                  f"  chunk {record['ms_per_iteration']:8.2f} ms/iteration"
-                  f"  {record['chunk_env_steps_per_s']:10.0f} env steps/s", flush=True)
+            chunk = ("" if args.skip_chunk else f"  chunk {record['ms_per_iteration']:8.2f} ms/iteration"
+                     f"  {record['chunk_env_steps_per_s']:10.0f} env steps/s")
+            print(f"{task:18s} {args.agent:12s} seeds={seeds:2d} envs={envs:2d}  env {record['env_ms']:6.2f} ms"
+                  f"  act {record['act_ms']:8.2f} ms  update {record['update_ms']:8.2f} ms{chunk}", flush=True)
     print(f"wrote {out}")
 
 
