@@ -61,7 +61,7 @@ def plot_env_throughput(path: str) -> None:
 
 
 def main() -> None:
-    env_rows, cell_rows = [], []
+    env_rows, cell_rows, train_rows = [], [], []
     for path in sorted(glob.glob(os.path.join(RESULTS, "*.json"))):
         with open(path) as f:
             payload = json.load(f)
@@ -74,6 +74,14 @@ def main() -> None:
                     f"| {r['domain']} | {r['profile']} ({_options(r)}) {flags} | {r['batch']} | "
                     f"{r['ms_per_agent_step']:.2f} | {r['agent_steps_per_s']:,.0f} | {device} | {name} |"
                 )
+        elif payload.get("benchmark") == "train_throughput":
+            device = payload["env"]["device"]
+            for r in payload["results"]:
+                chunk = (f"{r['ms_per_iteration']:.2f} | {r['chunk_env_steps_per_s']:,.0f}" if "ms_per_iteration" in r
+                         else "— | —")
+                train_rows.append(
+                    f"| {r['task']} | {r['agent']} | {r['seeds']} | {r['envs']} | {r['act_ms']:.2f} | "
+                    f"{r['env_ms']:.2f} | {r['update_ms']:.2f} | {chunk} | {device} | {name} |")
         elif "results" in payload and payload["results"] and "forward_backward_ms_median" in payload["results"][0]:
             for r in payload["results"]:
                 peak = r.get("peak_bytes_in_use")
@@ -91,6 +99,11 @@ def main() -> None:
     print("| variant | seeds (vmap) | fwd+bwd ms | fwd ms | peak MiB | device | file |")
     print("|---|---|---|---|---|---|---|")
     print("\n".join(cell_rows))
+    print("\n## Training steps (benchmarks/train_throughput.py): act, env step, one update, end-to-end chunk\n")
+    print("| task | agent | seeds | envs | act ms | env ms | update ms | chunk ms / iteration | chunk env steps / s "
+          "| device | file |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\n".join(train_rows))
     plot_env_throughput(os.path.join(RESULTS, "env_throughput.png"))
     print("\n![env throughput](env_throughput.png)")
 
