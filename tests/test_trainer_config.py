@@ -42,6 +42,7 @@ def test_parse_obs_and_overrides():
     ({"eval_obs": "remove_vel=maybe"}, "remove_vel='maybe': use one of 1, true"),
     ({"overrides": ["horizon"]}, "bad --set 'horizon'; use KEY=VALUE"),
     ({"name": "a/b"}, "run name 'a/b' must not contain '/'"),
+    ({"wandb": "my project"}, "wandb project 'my project' must be letters, digits, '.', '_' or '-'"),
 ])
 def test_bad_values_are_named_with_the_allowed_ones(values, message):
     with pytest.raises(ConfigError) as error:

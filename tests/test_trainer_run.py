@@ -90,6 +90,7 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     assert _steps(reference) == [400, 800, 1598, 1998] == steps[:2] + steps[-2:]  # chunks end at 1198, 1598
     summary = (reference / "summary.md").read_text()
     assert "cartpole-balance · tdmpc2 · 2 seed(s)" in summary and "**Final return" in summary
+    assert "| agent | tdmpc2 (model size 1M, small) |" in summary
     assert summary.count("\n") < 40  # one screen
     assert (reference / "curve.png").stat().st_size > 10_000
     timing = _rows(reference / "timing.csv")

@@ -50,3 +50,23 @@ def test_tensorboard_scalars_are_written_locally(tmp_path):
     assert len(events) == 1
     data = events[0].read_bytes()
     assert b"eval/return_mean" in data and b"train/total_loss/seed0" in data
+
+
+def test_wandb_scalars_are_logged_offline_into_the_run_folder(tmp_path, monkeypatch):
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    from lnnmpc.train.report import WandbLogger
+
+    logger = WandbLogger(str(tmp_path), "lnnmpc-test", {"task": "cartpole-balance", "seeds": 1})
+    logger.train_rows([{"env_step": 1000, "seed": 0, "episode_return": 12.5, "total_loss": 0.3}])
+    logger.eval_rows([{"env_step": 1000, "seed": 0, "episode": 0, "return": 40.0}])
+    logger.close()
+    runs = list((tmp_path / "wandb").glob("offline-run-*/run-*.wandb"))
+    assert len(runs) == 1
+    data = runs[0].read_bytes()
+    assert b"eval/return_mean" in data and b"train/total_loss/seed0" in data and b"cartpole-balance" in data
+    # The W&B run id follows the run folder, so a resumed run logs into the same W&B run.
+    assert runs[0].name == f"run-{logger.run.id}.wandb"
+    again = WandbLogger(str(tmp_path), "lnnmpc-test", {})
+    assert again.run.id == logger.run.id
+    again.close()

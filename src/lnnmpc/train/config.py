@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from collections.abc import Mapping
 from typing import Any
 
@@ -27,7 +28,7 @@ TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 # ``overrides`` may change as long as the agent's resolved hyperparameters stay those of the checkpoint (checked
 # by lnnmpc.train.compat.check_agent_config), e.g. to pin a default that changed in the code since the run.
 RESUMABLE_CHANGES = ("steps", "name", "runs_dir", "checkpoint_every", "keep_checkpoints", "devices",
-                     "tensorboard", "compile_cache", "overrides")
+                     "tensorboard", "wandb", "compile_cache", "overrides")
 
 
 BACKENDS = ("mjx", "dm_control")  # evaluation backends: MJX on the device, dm_control's simulator on the CPU
@@ -121,6 +122,8 @@ class TrainConfig:
       runs_dir, name, out: the run folder is ``out`` or ``<runs_dir>/<task>/<agent>/<timestamp>-<name>``
         (name defaults to the corruption tag, e.g. ``noise0.1-flicker0.2`` or ``clean``).
       tensorboard: also write TensorBoard scalars (needs the ``tensorboardX`` package).
+      wandb: a Weights & Biases project to log to ("" = off; needs the ``wandb`` package; ``WANDB_MODE=offline``
+        logs without network).
       compile_cache: folder for XLA's persistent compilation cache ("" turns it off).
     """
 
@@ -148,6 +151,7 @@ class TrainConfig:
     name: str = ""
     out: str | None = None
     tensorboard: bool = False
+    wandb: str = ""
     compile_cache: str = dataclasses.field(default_factory=default_compile_cache)
 
     def __post_init__(self):
@@ -174,6 +178,9 @@ class TrainConfig:
                               "includes the random seed phase")
         if not isinstance(self.small, bool) or not isinstance(self.tensorboard, bool):
             raise ConfigError("small and tensorboard must be True or False")
+        if not isinstance(self.wandb, str) or not re.fullmatch(r"[A-Za-z0-9._-]{0,128}", self.wandb):
+            raise ConfigError(f"wandb project {self.wandb!r} must be letters, digits, '.', '_' or '-' (at most 128; "
+                              "empty turns W&B logging off)")
         if "/" in self.name or self.name.startswith("."):
             raise ConfigError(f"run name {self.name!r} must not contain '/' or start with '.'")
         obs = parse_obs(self.obs)

@@ -78,6 +78,11 @@ def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str) 
     plt.close(fig)
 
 
+def _agent_size(c: dict) -> str:
+    """TD-MPC2's model size; the liquid agents have one (light) configuration, which model_size does not touch."""
+    return f"model size {c['model_size']}M" if c["agent"] == "tdmpc2" else "light configuration"
+
+
 def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, float], extra: dict) -> str:
     """The one-screen summary.md of a run."""
     c = config["config"]
@@ -90,7 +95,7 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
              "| setting | value |", "|---|---|",
              f"| environment steps | {done:,} of {c['steps']:,} (seed phase {c['seed_steps']:,}) |",
              f"| training corruptions | {obs} |", f"| evaluation corruptions | {eval_obs} |",
-             f"| agent | {c['agent']} (model size {c['model_size']}M{', small' if c['small'] else ''}"
+             f"| agent | {c['agent']} ({_agent_size(c)}{', small' if c['small'] else ''}"
              f"{', overrides ' + str(c['overrides']) if c['overrides'] else ''}) |",
              f"| physics, envs per seed | {c['physics']}, {c['envs']} |",
              f"| devices | {config.get('num_devices', 1)} × {(config.get('devices') or ['?'])[0]} |", ""]
@@ -153,3 +158,39 @@ class ScalarLogger:
 
     def close(self) -> None:
         self.writer.close()
+
+
+class WandbLogger:
+    """The same scalars to a Weights & Biases project (needs ``wandb``; ``WANDB_MODE=offline`` needs no network).
+
+    The W&B run's id is derived from the run folder, so a resumed run continues the same W&B run; every scalar is
+    plotted against ``env_step``. W&B's own files go to ``<run>/wandb``.
+    """
+
+    def __init__(self, run: str, project: str, config: dict):
+        import hashlib
+
+        try:
+            import wandb
+        except ImportError:
+            raise RuntimeError("wandb logging needs the wandb package: pip install wandb") from None
+        folder = os.path.abspath(run)
+        run_id = hashlib.sha1(folder.encode()).hexdigest()[:16]
+        self.run = wandb.init(project=project, name=os.path.basename(folder), id=run_id, resume="allow",
+                              dir=folder, config=config)
+        self.run.define_metric("env_step")
+        self.run.define_metric("*", step_metric="env_step")
+
+    def train_rows(self, rows: list[dict]) -> None:
+        for row in rows:
+            self.run.log({"env_step": row["env_step"], **{f"train/{k}/seed{row['seed']}": v for k, v in row.items()
+                                                          if k not in ("env_step", "seed")}})
+
+    def eval_rows(self, rows: list[dict]) -> None:
+        if rows:
+            returns = [r["return"] for r in rows]
+            self.run.log({"env_step": rows[0]["env_step"], "eval/return_mean": float(np.mean(returns)),
+                          "eval/return_std": float(np.std(returns))})
+
+    def close(self) -> None:
+        self.run.finish()

@@ -122,6 +122,11 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
             import tensorboardX  # noqa: F401
         except ImportError:
             raise ConfigError("tensorboard=True needs the tensorboardX package (pip install tensorboardX)") from None
+    if config.wandb:
+        try:
+            import wandb  # noqa: F401
+        except ImportError:
+            raise ConfigError(f"wandb={config.wandb!r} needs the wandb package (pip install wandb)") from None
     num_devices = device_count_for(config.seeds, jax.device_count(), config.devices)
     resume_step = latest_step(run) if os.path.isdir(run) else None
     signature = state_signature(loop, config.seeds)
@@ -189,7 +194,9 @@ class _Run:
                          "next_checkpoint": self.config.checkpoint_every, "last_checkpoint": -1, "seeded": False,
                          "eval_key": None, "train_seconds": 0.0}
         self.progress = report.Progress(self.config.steps)
-        self.logger = report.ScalarLogger(self.run) if self.config.tensorboard else None
+        self.loggers = ([report.ScalarLogger(self.run)] if self.config.tensorboard else []) + (
+            [report.WandbLogger(self.run, self.config.wandb, self.config.to_dict())]
+            if self.config.wandb else [])
 
     def chunk_fn(self, name: str, length: int):
         """Compiled ``loop.<name>(ts, length)`` over seeds (cached per length)."""
@@ -219,8 +226,8 @@ class _Run:
                 self._schedule(stop)
             finally:
                 self.counters["train_seconds"] += time.perf_counter() - start
-                if self.logger:
-                    self.logger.close()
+                for logger in self.loggers:
+                    logger.close()
         report.write_reports(self.run, self.counters)
         sys.stderr.write(f"\nrun folder: {self.run}\n")
         return self.run
@@ -308,8 +315,8 @@ class _Run:
                    if kept is not None else "No checkpoint had been written yet."))
         self.ts = ts
         runfolder.append_csv(os.path.join(self.run, "train.csv"), rows)
-        if self.logger:
-            self.logger.train_rows(rows)
+        for logger in self.loggers:
+            logger.train_rows(rows)
 
     @contextlib.contextmanager
     def _timed(self, phase: str):
@@ -337,8 +344,8 @@ class _Run:
                 for s in range(returns.shape[0]) for e in range(returns.shape[1])]
         runfolder.append_csv(os.path.join(self.run, "eval.csv"), rows)
         self.progress.last_eval = float(returns.mean())
-        if self.logger:
-            self.logger.eval_rows(rows)
+        for logger in self.loggers:
+            logger.eval_rows(rows)
         report.write_reports(self.run, self.counters)
 
     def _checkpoint(self) -> None:
