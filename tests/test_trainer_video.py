@@ -39,13 +39,17 @@ def test_gif_and_mp4_encoding(tmp_path):
         encode(frames, str(tmp_path / "a.avi"), fps=25)
 
 
+def _log_one_row_each(logger) -> None:
+    logger.train_rows([{"env_step": 1000, "seed": 0, "episode_return": 12.5, "total_loss": 0.3}])
+    logger.eval_rows([{"env_step": 1000, "seed": 0, "episode": 0, "return": 40.0}])
+    logger.close()
+
+
 def test_tensorboard_scalars_are_written_locally(tmp_path):
     from lnnmpc.train.report import ScalarLogger
 
     logger = ScalarLogger(str(tmp_path))
-    logger.train_rows([{"env_step": 1000, "seed": 0, "episode_return": 12.5, "total_loss": 0.3}])
-    logger.eval_rows([{"env_step": 1000, "seed": 0, "episode": 0, "return": 40.0}])
-    logger.close()
+    _log_one_row_each(logger)
     events = list((tmp_path / "tensorboard").glob("events.out.tfevents.*"))
     assert len(events) == 1
     data = events[0].read_bytes()
@@ -58,9 +62,7 @@ def test_wandb_scalars_are_logged_offline_into_the_run_folder(tmp_path, monkeypa
     from lnnmpc.train.report import WandbLogger
 
     logger = WandbLogger(str(tmp_path), "lnnmpc-test", {"task": "cartpole-balance", "seeds": 1})
-    logger.train_rows([{"env_step": 1000, "seed": 0, "episode_return": 12.5, "total_loss": 0.3}])
-    logger.eval_rows([{"env_step": 1000, "seed": 0, "episode": 0, "return": 40.0}])
-    logger.close()
+    _log_one_row_each(logger)
     runs = list((tmp_path / "wandb").glob("offline-run-*/run-*.wandb"))
     assert len(runs) == 1
     data = runs[0].read_bytes()
