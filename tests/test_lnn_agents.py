@@ -159,3 +159,25 @@ def test_op_planning_step_is_the_encoder_on_the_prediction(name):
     if sigma is not None:  # the stochastic transition samples: another key gives another next latent
         other = model.dynamics({"z": z, "key": jax.random.key_data(jax.random.key(7))}, a)
         assert float(jnp.abs(other["z"] - stepped["z"]).max()) > 1e-4
+
+
+def test_symlog_input_transform_squashes_what_the_cell_reads(zp_agent):
+    """input_transform="symlog": acting and the training unroll both feed the cell sign(o)·log(1+|o|)."""
+    agent, state = zp_agent
+    squashing = LNNTDMPC2(dataclasses.replace(
+        agent.config, model=dataclasses.replace(agent.config.model, input_transform="symlog")))
+    batch = window(agent, seed=9)
+    obs = 20.0 * batch["obs"][:4, :2]  # walker-sized inputs
+    prev, dt, h0 = batch["prev_action"][:4, :2], batch["dt"][:4, :2], batch["h_prev"][0, :2]
+    squashed_np = np.sign(np.asarray(obs, np.float64)) * np.log1p(np.abs(np.asarray(obs, np.float64)))
+    got = squashing.encode_sequence(state.params, h0, obs, prev, dt)
+    want = agent.encode_sequence(state.params, h0, jnp.asarray(squashed_np, jnp.float32), prev, dt)
+    np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-5, atol=1e-6)
+    assert float(jnp.abs(got - agent.encode_sequence(state.params, h0, obs, prev, dt)).max()) > 1e-3
+    one = squashing.model.apply({"params": state.params}, h0, obs[0], prev[0], dt[0], method="encode_step")
+    np.testing.assert_allclose(np.asarray(one), np.asarray(got[0]), rtol=1e-5, atol=1e-6)
+    allowed = r"input_transform='log' is not supported; allowed values: \['none', 'symlog'\]"
+    with pytest.raises(ValueError, match=allowed):
+        make_agent("cfc-zp-det", OBS, ACT, overrides={"input_transform": "log"})
+    assert make_agent("ltc-op-det", OBS, ACT, overrides={"input_transform": "symlog"}).config.model.input_transform \
+        == "symlog"

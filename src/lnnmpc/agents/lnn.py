@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from lnnmpc.agents import math as M
-from lnnmpc.agents.lnn_model import LNNModelConfig, LNNWorldModel, make_cell
+from lnnmpc.agents.lnn_model import LNNModelConfig, LNNWorldModel, encoder_input, make_cell
 from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
 from lnnmpc.agents.returns import lambda_returns
 from lnnmpc.agents.tdmpc2 import TDMPC2, AgentState, TDMPC2Config, make_optimizers
@@ -106,7 +106,7 @@ class LNNTDMPC2(TDMPC2):
     def encode_sequence(self, params, h0: jax.Array, obs: jax.Array, prev_action: jax.Array,
                         dt: jax.Array) -> jax.Array:
         """Encoder states (T, B, N) after each step, from h0 (B, N), obs (T, B, d), prev_action (T, B, A), dt (T, B)."""
-        inputs = jnp.concatenate([obs, prev_action], axis=-1)
+        inputs = encoder_input(self.config.model, obs, prev_action)
         return unroll(self.cell, {"params": params["encoder"]}, h0, inputs, dt).states
 
     def latents(self, params, batch: dict) -> jax.Array:

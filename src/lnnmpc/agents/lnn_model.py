@@ -7,7 +7,9 @@ Components (``h`` the encoder state (B, N), N = ``hidden_size``; ``a`` actions (
   size = 64, Table 4.1): no projection and no SimNorm follow the cell. The cells' states are already bounded
   (CfC default mode: a gated mix of two tanh's, in [−1, 1]; LTC: the semi-implicit Euler update keeps the
   potentials within the span of the previous state, v_leak and the reversal potentials), and the OP planner
-  (Algorithm 5) must carry the cell state anyway. The LTC runs ``ode_unfolds`` (6) hybrid-Euler sub-steps and
+  (Algorithm 5) must carry the cell state anyway. ``input_transform="symlog"`` feeds the cell
+  sign(o)·log(1 + |o|) instead of o (the thesis feeds o; walker's joint velocities reach ±50 and saturate the
+  CfC backbone, see :data:`INPUT_TRANSFORMS`). The LTC runs ``ode_unfolds`` (6) hybrid-Euler sub-steps and
   reads no output map (``output_mapping="none"``).
 * predictor f: an MLP (``mlp_dim`` × 2, NormedLinear + Mish) on [z, a] predicting the next latent (ZP) or
   the next observation (OP): deterministic (the prediction) or a diagonal Gaussian (mean, σ) with
@@ -23,12 +25,17 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from lnnmpc.agents.math import symlog
 from lnnmpc.agents.tdmpc2_model import MLP, WorldModel
 from lnnmpc.nets import CFC_MODES, CfCCell, LTCCell
 from lnnmpc.nets.common import check_choice, check_fraction, check_int_at_least
 
 CELLS = ("cfc", "ltc")
 OBJECTIVES = ("zp", "op")
+# What the encoder does to an observation before the cell reads it: "none" (the thesis) or "symlog"
+# (sign(o)·log(1+|o|), DreamerV3's squashing of vector inputs; identity near 0, logarithmic for large |o|).
+# The OP predictor still predicts raw observations; the planner squashes its predictions the same way.
+INPUT_TRANSFORMS = ("none", "symlog")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -51,6 +58,7 @@ class LNNModelConfig:
     ode_unfolds: int = 6  # LTC Euler sub-steps per input step
     min_sigma: float = 0.05  # bounds of the stochastic predictor's σ
     max_sigma: float = 5.0
+    input_transform: str = "none"  # one of INPUT_TRANSFORMS
 
     def __post_init__(self):
         for name in ("obs_dim", "action_dim", "hidden_size", "mlp_dim", "num_bins", "backbone_units",
@@ -62,6 +70,7 @@ class LNNModelConfig:
         check_choice("objective", self.objective, OBJECTIVES)
         check_choice("stochastic", self.stochastic, (False, True))
         check_choice("cfc_mode", self.cfc_mode, CFC_MODES)
+        check_choice("input_transform", self.input_transform, INPUT_TRANSFORMS)
         check_fraction("q_dropout", self.q_dropout)
         if not 0 < self.min_sigma <= self.max_sigma:
             raise ValueError(f"need 0 < min_sigma <= max_sigma, got min_sigma={self.min_sigma!r}, "
@@ -84,6 +93,13 @@ def make_cell(config: LNNModelConfig) -> nn.Module:
         return CfCCell(config.hidden_size, mode=config.cfc_mode, backbone_units=config.backbone_units,
                        backbone_layers=config.backbone_layers)
     return LTCCell(config.hidden_size, ode_unfolds=config.ode_unfolds, output_mapping="none")
+
+
+def encoder_input(config: LNNModelConfig, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
+    """The cell's input x = [transform(o), a_prev] (..., d + A) from obs (..., d) and prev_action (..., A)."""
+    if config.input_transform == "symlog":
+        obs = symlog(obs)
+    return jnp.concatenate([obs, prev_action], axis=-1)
 
 
 def gaussian_params(raw: jax.Array, min_sigma: float, max_sigma: float) -> tuple[jax.Array, jax.Array]:
@@ -109,7 +125,7 @@ class LNNWorldModel(WorldModel):
 
     def encode_step(self, h: jax.Array, obs: jax.Array, prev_action: jax.Array, dt: jax.Array) -> jax.Array:
         """One encoder step: h (B, N), obs (B, d), prev_action (B, A), dt (B,) or (B, 1) -> h' (B, N)."""
-        new_h, _ = self.encoder(h, jnp.concatenate([obs, prev_action], axis=-1), dt)
+        new_h, _ = self.encoder(h, encoder_input(self.config, obs, prev_action), dt)
         return new_h
 
     def predict(self, z: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array | None]:
