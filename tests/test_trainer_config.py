@@ -152,3 +152,31 @@ def test_reference_lines_from_the_thesis():
     assert references("cartpole-swingup", "cfc-op-det", {}) == {"thesis TD-MPC2": 863.9,
                                                                  "thesis CfC OP det": 880.0}
     assert references("cartpole-balance", "tdmpc2", {}) == {}
+
+
+def test_new_walker_runs_of_lnn_agents_record_symlog_inputs(tmp_path):
+    """Task defaults (registry.LNN_TASK_DEFAULTS) go into a new run's overrides; the user's value wins; a run
+    folder's recorded overrides hold when the same command is run again."""
+    walker = {"task": "walker-run", "small": True}
+    setup = validate(TrainConfig(**walker, agent="cfc-zp-det", out=str(tmp_path / "a")))
+    assert setup.config.overrides == {"input_transform": "symlog"}
+    assert setup.loop.agent.config.model.input_transform == "symlog"
+    mine = validate(TrainConfig(**walker, agent="ltc-op-det", overrides={"input_transform": "none"},
+                                out=str(tmp_path / "b")))
+    assert mine.config.overrides == {"input_transform": "none"}
+    assert validate(TrainConfig(**walker, agent="tdmpc2", out=str(tmp_path / "c"))).config.overrides == {}
+    cartpole = validate(TrainConfig(task="cartpole-swingup", small=True, agent="cfc-op-det", out=str(tmp_path / "d")))
+    assert cartpole.loop.agent.config.model.input_transform == "none"
+    # A run recorded before the default existed keeps its raw inputs when it is run again or resumed.
+    old = str(tmp_path / "old")
+    os.makedirs(old)
+    runfolder.write_config(old, TrainConfig(**walker, agent="cfc-zp-det", out=old, replay_capacity=3000), {})
+    again = validate(TrainConfig(**walker, agent="cfc-zp-det", out=old, overrides={"input_transform": "none"}))
+    assert again.loop.agent.config.model.input_transform == "none"
+    assert validate(resume=old).loop.agent.config.model.input_transform == "none"
+    recorded = str(tmp_path / "recorded")
+    os.makedirs(recorded)
+    runfolder.write_config(recorded, TrainConfig(**walker, agent="cfc-zp-det", out=recorded, replay_capacity=3000,
+                                                 overrides={"input_transform": "symlog"}), {})
+    rerun = validate(TrainConfig(**walker, agent="cfc-zp-det", out=recorded))
+    assert rerun.config.overrides == {"input_transform": "symlog"}

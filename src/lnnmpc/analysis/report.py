@@ -201,11 +201,6 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
             mask = masks[phase]
             plot_umap(os.path.join(out, f"umap-{phase}.png"), rec["latent"][mask], rec["clean_obs"][mask],
                       rec["qvel"][mask][:, :2], f"{label}, {phase} phase", seed=seed)
-    ranks = effective_ranks(run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length)
-    write_csv(os.path.join(out, "effective_rank.csv"), ranks)
-    plot_series(os.path.join(out, "effective_rank.png"), [r["env_step"] for r in ranks],
-                [r["effective_rank"] for r in ranks], [r["std"] for r in ranks], "environment steps",
-                "effective rank of Z")
     if getattr(agent.config.model, "objective", None) == "op":
         predict, step = op_model_functions(agent, state)
         errors = np.stack([metrics.k_step_errors(predict, step, z, a, o, k)
@@ -217,6 +212,12 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
         rolled = metrics.k_step_predictions(predict, step, z, a, starts, k)
         plot_predictions(os.path.join(out, "prediction.png"), o, one, list(zip(starts, rolled, strict=True)),
                          names if o.shape[-1] == len(names) else ())
+    # Last: it rolls out every kept checkpoint (the slowest part).
+    ranks = effective_ranks(run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length)
+    write_csv(os.path.join(out, "effective_rank.csv"), ranks)
+    plot_series(os.path.join(out, "effective_rank.png"), [r["env_step"] for r in ranks],
+                [r["effective_rank"] for r in ranks], [r["std"] for r in ranks], "environment steps",
+                "effective rank of Z")
     return out
 
 

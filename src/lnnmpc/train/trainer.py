@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc import envs
-from lnnmpc.agents.registry import make_agent
+from lnnmpc.agents.registry import make_agent, task_default_overrides
 from lnnmpc.replay import replay_capacity_for
 from lnnmpc.train import report, runfolder
 from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
@@ -111,9 +111,14 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
         saved = runfolder.saved_config(run)
         if config.replay_capacity is None:  # the buffer keeps its size when a resumed run gets more steps
             config = dataclasses.replace(config, replay_capacity=saved.replay_capacity)
+        # what the run recorded (task defaults included) holds unless the user sets it again
+        config = dataclasses.replace(config, overrides={**saved.overrides, **config.overrides})
         check_compatible(run, saved, config)
     elif resume is not None:
         raise ConfigError(f"{resume!r} is not a run folder (no {runfolder.CONFIG_FILE})")
+    else:  # a new run records its task's default hyperparameters with the user's overrides
+        config = dataclasses.replace(config, overrides=task_default_overrides(config.agent, config.task,
+                                                                              config.overrides))
     loop = build_loop(config)
     config = dataclasses.replace(config, replay_capacity=loop.config.replay_capacity)
     runfolder.ensure_writable(run)
