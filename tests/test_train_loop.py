@@ -25,8 +25,13 @@ def loop():
                                                     eval_episodes=2))
 
 
-def test_seed_phase_fills_replay_with_whole_episodes(loop):
-    init = jax.jit(jax.vmap(loop.init))
+@pytest.fixture(scope="module")
+def init(loop):
+    """``loop.init`` over 2 seeds, compiled once for the module (compiling it costs more than running it)."""
+    return jax.jit(jax.vmap(loop.init))
+
+
+def test_seed_phase_fills_replay_with_whole_episodes(loop, init):
     seed = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
     ts, out = seed(init(jax.random.split(jax.random.key(0), 2)), 502)  # one episode (500 steps + final obs) + 1
     assert np.asarray(replay_size(ts.replay)).tolist() == [502, 502]
@@ -42,13 +47,13 @@ def test_seed_phase_fills_replay_with_whole_episodes(loop):
     assert np.all(np.asarray(ts.replay.fields["reward"])[:, 500] == 0)
 
 
-def test_checkpoint_round_trip_of_a_train_state(loop, tmp_path):
+def test_checkpoint_round_trip_of_a_train_state(init, tmp_path):
     from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 
-    ts = jax.jit(loop.init)(jax.random.key(9))
+    ts = init(jax.random.split(jax.random.key(9), 2))
     save_checkpoint(str(tmp_path), 7, ts, {"env_steps": 7})
     assert latest_step(str(tmp_path)) == 7
-    like = jax.jit(loop.init)(jax.random.key(10))
+    like = init(jax.random.split(jax.random.key(10), 2))
     restored, host = restore_checkpoint(str(tmp_path), 7, like)
     assert host == {"env_steps": 7}
     for a, b in zip(jax.tree_util.tree_leaves(ts), jax.tree_util.tree_leaves(restored), strict=True):
