@@ -11,6 +11,7 @@ import pytest
 
 from lnnmpc.analysis import metrics, report
 from lnnmpc.analysis.projection import log_speed
+from lnnmpc.analysis.rollout import rollout_program
 from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import save_checkpoint
 from lnnmpc.train.compat import state_signature
@@ -84,7 +85,8 @@ def test_cartpole_phase_split():
 
 
 def _untrained_run(path) -> str:
-    """A run folder holding one checkpoint of an untrained small cfc-op-det agent (no training needed)."""
+    """A run folder holding two checkpoints (steps 0 and 500) of untrained small cfc-op-det agents with different
+    initial parameters (no training needed)."""
     config = TrainConfig(task="cartpole-swingup", agent="cfc-op-det", obs="remove_vel=1", small=True, seeds=1,
                          steps=1000, seed_steps=0, replay_capacity=64, out=str(path), compile_cache="")
     loop = build_loop(config)
@@ -95,14 +97,18 @@ def _untrained_run(path) -> str:
     zeros = jax.tree_util.tree_map(lambda x: jax.random.wrap_key_data(jnp.zeros(x.shape + key_shape, jnp.uint32))
                                    if jnp.issubdtype(x.dtype, jax.dtypes.prng_key) else jnp.zeros(x.shape, x.dtype),
                                    jax.eval_shape(jax.vmap(loop.init), keys))
-    save_checkpoint(str(path), 0, zeros.replace(agent=jax.jit(jax.vmap(loop.agent.init))(keys)), {"env_steps": 0})
+    for step in (0, 500):
+        agent = jax.jit(jax.vmap(loop.agent.init))(jax.random.split(jax.random.key(step), 1))
+        save_checkpoint(str(path), step, zeros.replace(agent=agent), {"env_steps": step})
     return str(path)
 
 
 def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
     run = _untrained_run(tmp_path / "run")
+    compiled = rollout_program.cache_info().misses
     out = report.analyse(run, episodes=2, length=40, use_umap=False)
-    assert out == os.path.join(run, "analysis", "0")
+    assert out == os.path.join(run, "analysis", "500")
+    assert rollout_program.cache_info().misses == compiled + 1  # one rollout program for both checkpoints
     assert sorted(os.listdir(out)) == ["correlation-swingup.png", "correlation.csv", "effective_rank.csv",
                                        "effective_rank.png", "prediction.png", "prediction_error.csv"]
     with open(os.path.join(out, "correlation.csv")) as f:
@@ -114,5 +120,7 @@ def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
     assert [r["metric"] for r in errors] == ["one-step", "step 10", "mean over 10 steps"]
     assert all(np.isfinite(float(r["mean"])) and r["episodes"] == "2" for r in errors)
     with open(os.path.join(out, "effective_rank.csv")) as f:
-        rank = next(csv.DictReader(f))
-    assert rank["env_step"] == "0" and 1.0 <= float(rank["effective_rank"]) <= 16
+        ranks = list(csv.DictReader(f))
+    assert [r["env_step"] for r in ranks] == ["0", "500"]
+    assert all(1.0 <= float(r["effective_rank"]) <= 16 for r in ranks)
+    assert ranks[0]["effective_rank"] != ranks[1]["effective_rank"]  # each checkpoint's own parameters

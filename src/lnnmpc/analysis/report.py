@@ -147,19 +147,20 @@ def plot_predictions(path: str, targets: np.ndarray, one_step: np.ndarray, rollo
 
 
 def effective_ranks(run: str, steps: list[int], episodes: int, seed_index: int = 0, known: dict | None = None,
-                    length: int | None = None) -> list[dict]:
+                    length: int | None = None, policy=None) -> list[dict]:
     """Effective rank of each episode's Z (T, N), mean ± std over episodes, at each checkpoint step; ``known``
-    maps steps to latents (E, T, N) already rolled out; ``length``: agent steps per episode (None: all)."""
+    maps steps to latents (E, T, N) already rolled out; ``length``: agent steps per episode (None: all);
+    ``policy``: a loaded :class:`lnnmpc.train.evaluate.Policy` of ``run`` whose compiled rollout is reused."""
     import jax
 
     from lnnmpc.analysis.rollout import rollout
-    from lnnmpc.train.evaluate import load_policy
+    from lnnmpc.train.evaluate import load_policy, policy_at
 
     rows = []
     for step in steps:
         latent = (known or {}).get(step)
         if latent is None:
-            policy = load_policy(run, step)
+            policy = load_policy(run, step) if policy is None else policy_at(policy, run, step)
             state = jax.tree_util.tree_map(lambda x: x[seed_index], policy.agent_state)
             latent = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes,
                              length)["latent"]
@@ -213,7 +214,8 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
         plot_predictions(os.path.join(out, "prediction.png"), o, one, list(zip(starts, rolled, strict=True)),
                          names if o.shape[-1] == len(names) else ())
     # Last: it rolls out every kept checkpoint (the slowest part).
-    ranks = effective_ranks(run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length)
+    ranks = effective_ranks(run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length,
+                            policy)
     write_csv(os.path.join(out, "effective_rank.csv"), ranks)
     plot_series(os.path.join(out, "effective_rank.png"), [r["env_step"] for r in ranks],
                 [r["effective_rank"] for r in ranks], [r["std"] for r in ranks], "environment steps",

@@ -11,6 +11,8 @@ MPPI without exploration noise) and returns, per episode and agent step t (array
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -23,13 +25,13 @@ def _latent(agent, state, carry, obs):
     return agent._apply(state.params, obs, method="encode")
 
 
-def rollout(agent, state, env, key: jax.Array, episodes: int, steps: int | None = None) -> dict[str, np.ndarray]:
-    """Records of ``episodes`` deterministic episodes (module docstring); ``state``: one seed's agent state;
-    ``steps``: agent steps per episode (default the whole episode)."""
+@functools.lru_cache(maxsize=8)
+def rollout_program(agent, env, episodes: int, steps: int | None = None):
+    """The compiled ``(state, key) -> records`` of :func:`rollout` (time-major leaves (T, E, ...)); the agent
+    state is an argument, so one compilation serves every checkpoint of a run."""
     n = episodes
-    carries = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), agent.initial_carry())
 
-    def body(loop_carry, k):
+    def body(state, loop_carry, k):
         s, carry = loop_carry
         act = jax.vmap(lambda c, o, dt, kk, f: agent.act(state, c, o, dt, kk, explore=False, first_step=f))
         action, carry = act(carry, s.obs, s.dt, jax.random.split(k, n), s.t == 0)
@@ -39,12 +41,20 @@ def rollout(agent, state, env, key: jax.Array, episodes: int, steps: int | None 
                   "reward": nxt.reward}
         return (nxt, carry), record
 
-    def episodes_from(key):  # reset and scan in one compiled program (eager MJX resets are slow)
+    def episodes_from(state, key):  # reset and scan in one compiled program (eager MJX resets are slow)
+        carries = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), agent.initial_carry())
         k_reset, k_act = jax.random.split(key)
         env_state = jax.vmap(env.reset)(jax.random.split(k_reset, n))
-        return jax.lax.scan(body, (env_state, carries), jax.random.split(k_act, steps or env.episode_length))[1]
+        return jax.lax.scan(functools.partial(body, state), (env_state, carries),
+                            jax.random.split(k_act, steps or env.episode_length))[1]
 
-    records = jax.jit(episodes_from)(key)
+    return jax.jit(episodes_from)
+
+
+def rollout(agent, state, env, key: jax.Array, episodes: int, steps: int | None = None) -> dict[str, np.ndarray]:
+    """Records of ``episodes`` deterministic episodes (module docstring); ``state``: one seed's agent state;
+    ``steps``: agent steps per episode (default the whole episode)."""
+    records = rollout_program(agent, env, episodes, steps)(state, key)
     return {name: np.swapaxes(np.asarray(value), 0, 1) for name, value in records.items()}
 
 
