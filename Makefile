@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install train eval video report test lint fmt bench bench-env bench-cells clean
+.PHONY: install train eval video report compare test lint fmt bench bench-env bench-cells clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -53,6 +53,13 @@ video: $(STAMP)
 # make report RUN=<run folder>: redraw curve.png and summary.md
 report: $(STAMP)
 	$(PY) -m lnnmpc.train.cli report "$(RUN)"
+
+# make compare RUNS="<run folder> <run folder> ..." OUT=curves.png [LABELS="'raw inputs' 'symlog inputs'"]
+#   learning curves of several runs on one plot (and the numbers in curves.csv)
+RUNS   ?=
+LABELS ?=
+compare: $(STAMP)
+	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS))
 
 # make experiment NAME=table5_3 [ARGS="--seeds 3 --agents tdmpc2,cfc-zp-det --steps 200000 --dry-run"]
 #   trains (resumes) the study's grid, evaluates it and writes experiments/results/studies/NAME.{csv,md}

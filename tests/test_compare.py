@@ -1,0 +1,53 @@
+"""``lnnmpc.train.compare``: several runs' learning curves on one figure, with the plotted numbers as CSV."""
+
+from __future__ import annotations
+
+import csv
+import os
+
+import pytest
+
+from lnnmpc.train import runfolder
+from lnnmpc.train.compare import load_curves, main, shared_references
+from lnnmpc.train.config import ConfigError, TrainConfig
+
+
+def _run(path, agent: str, returns: dict[int, list[list[float]]], **config) -> str:
+    """A run folder with config.json and eval.csv: returns[step][seed] = that seed's episode returns."""
+    os.makedirs(path)
+    runfolder.write_config(str(path), TrainConfig(task="cartpole-swingup", agent=agent, out=str(path), **config), {})
+    rows = [{"env_step": step, "seed": seed, "episode": e, "return": r}
+            for step, seeds in returns.items() for seed, episodes in enumerate(seeds) for e, r in enumerate(episodes)]
+    runfolder.write_csv(os.path.join(path, "eval.csv"), ["env_step", "seed", "episode", "return"], rows)
+    return str(path)
+
+
+def test_compare_plots_each_run_and_writes_the_numbers(tmp_path):
+    a = _run(tmp_path / "a", "tdmpc2", {10000: [[100, 300], [500, 500]], 20000: [[600, 600], [800, 800]]}, seeds=2)
+    b = _run(tmp_path / "b", "cfc-zp-det", {10000: [[50], [150]]}, seeds=2, overrides={"input_transform": "symlog"})
+    curves = load_curves([a, b])
+    assert [c["label"] for c in curves] == ["tdmpc2", "cfc-zp-det input_transform=symlog"]
+    # mean over seeds of each seed's mean; std over the seed means
+    assert [(t["env_step"], t["mean"], t["std"]) for t in curves[0]["table"]] == [(10000, 350.0, 150.0),
+                                                                               (20000, 700.0, 100.0)]
+    assert set(shared_references(curves)) == {"thesis TD-MPC2", "thesis CfC ZP det"}
+    out = str(tmp_path / "fig" / "curves.png")
+    assert main([a, b, "--labels", "baseline", "liquid", "--out", out]) == 0
+    assert os.path.getsize(out) > 10_000
+    with open(str(tmp_path / "fig" / "curves.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["label"], r["env_step"], float(r["mean"])) for r in rows] == [
+        ("baseline", "10000", 350.0), ("baseline", "20000", 700.0), ("liquid", "10000", 100.0)]
+
+
+def test_compare_refuses_bad_input_with_the_reason(tmp_path, capsys):
+    a = _run(tmp_path / "a", "tdmpc2", {10000: [[1.0]]})
+    with pytest.raises(ConfigError, match="1 label\\(s\\) for 2 run\\(s\\)"):
+        load_curves([a, a], ["only one"])
+    with pytest.raises(ConfigError, match="is not a run folder"):
+        load_curves([str(tmp_path)])
+    empty = _run(tmp_path / "empty", "tdmpc2", {})
+    assert main([empty, "--out", str(tmp_path / "x.png")]) == 2
+    assert "has no evaluation rows in eval.csv yet" in capsys.readouterr().err
+    other = _run(tmp_path / "other", "tdmpc2", {10000: [[1.0]]}, obs="remove_vel=1")
+    assert shared_references(load_curves([a, other])) == {}  # different corruptions: no common reference
