@@ -84,6 +84,17 @@ def test_cartpole_phase_split():
     np.testing.assert_allclose(log_speed(np.array([-1.0, 0.0])), [np.log(1.001), np.log(1e-3)])
 
 
+def test_observation_names_follow_the_kept_dimensions():
+    from lnnmpc import envs
+
+    names = report.STATE_NAMES["cartpole"]
+    no_velocity = envs.make("cartpole-swingup", remove_vel=True)
+    assert report.observation_names(names, no_velocity.kept, 3) == ("cart position", "pole cos", "pole sin")
+    assert report.observation_names(names, envs.make("cartpole-swingup").kept, 5) == names
+    assert report.observation_names(names, no_velocity.kept, 5) == ()  # sizes disagree: no names
+    assert report.observation_names(("a",), no_velocity.kept, 3) == ()
+
+
 def _untrained_run(path) -> str:
     """A run folder holding two checkpoints (steps 0 and 500) of untrained small cfc-op-det agents with different
     initial parameters (no training needed)."""

@@ -37,6 +37,15 @@ def state_names(task: str, dim: int) -> tuple[str, ...]:
     return names if names is not None and len(names) == dim else tuple(f"state {i}" for i in range(dim))
 
 
+def observation_names(state_names_: tuple, kept, dim: int) -> tuple:
+    """Names of the delivered observation's dimensions: the clean observation's names at the indices the
+    corruption keeps (``remove_vel`` drops the velocities); () when they do not match ``dim``."""
+    kept = [int(i) for i in kept]
+    if len(kept) != dim or max(kept, default=-1) >= len(state_names_):
+        return ()
+    return tuple(state_names_[i] for i in kept)
+
+
 def phase_masks(task: str, qpos: np.ndarray, threshold: float = 0.3, hold: int = 25) -> dict[str, np.ndarray]:
     """{phase: mask (E, T)}: cartpole swing-up / balance (pole angle qpos[..., 1]), else the whole episode."""
     if not task.startswith("cartpole"):
@@ -212,7 +221,7 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
         starts = np.arange(0, len(z) - k, k)
         rolled = metrics.k_step_predictions(predict, step, z, a, starts, k)
         plot_predictions(os.path.join(out, "prediction.png"), o, one, list(zip(starts, rolled, strict=True)),
-                         names if o.shape[-1] == len(names) else ())
+                         observation_names(names, policy.loop.eval_env.kept, o.shape[-1]))
     # Last: it rolls out every kept checkpoint (the slowest part).
     ranks = effective_ranks(run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length,
                             policy)
