@@ -74,7 +74,7 @@ lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks experiments
 
 test: lint
-	$(VENV)/bin/pytest -q -n 2 --dist loadfile --no-loadscope-reorder tests
+	$(VENV)/bin/pytest -q -n 2 --dist loadfile tests
 
 # Benchmarks write JSON under benchmarks/results/ (meant for a GPU; see benchmarks/results/README.md).
 bench-env: $(STAMP)

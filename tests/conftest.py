@@ -5,14 +5,20 @@ import os
 os.environ.setdefault("MUJOCO_GL", "disable")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
-# Test files by measured cost on a 2-core CPU (compile-bound), most expensive first. `make test` runs
-# `pytest -n 2 --dist loadfile --no-loadscope-reorder`: xdist hands out whole files in collection order, so the
-# long files start at once on both workers and the many short ones fill the gaps at the end (longest processing
-# time first). Without this, xdist's default order (most tests first) leaves the one-test learning file and the
-# seven-test trainer file for last. Files not listed keep pytest's order after these.
+# Test files by measured cost on a 2-core CPU (compile-bound), most expensive first. With `--dist loadfile`
+# xdist hands out whole files; in collection order (see pytest_configure) the long files start at once on both
+# workers and the many short ones fill the gaps at the end (longest processing time first). xdist's default order
+# (most tests first) would leave the one-test learning file and the seven-test trainer file for last. Files not
+# listed keep pytest's order after these.
 HEAVY_FILES = ("test_trainer_run.py", "test_learning.py", "test_lnn_training.py", "test_env_fast.py",
                "test_cells.py", "test_env_solver.py", "test_train_loop.py", "test_tdmpc2.py", "test_analysis.py",
                "test_env_parity.py")
+
+
+def pytest_configure(config):
+    """Keeps the collection order for xdist's file scheduling (pytest-xdist >= 3.8 reorders unless told not to)."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
 
 
 def _file_rank(item) -> int:
