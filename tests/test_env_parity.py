@@ -44,6 +44,16 @@ def _mjx_rollout_fn(task, extra):
     return rollout
 
 
+@pytest.fixture(autouse=True)
+def fresh_jit_caches():
+    """JAX's caches of inner jitted functions (MJX's ``jit(tril)`` in RK4) do not tell x64 from x32 programs:
+    one traced by an earlier float32 test in the same worker breaks the float64 lowering here (operand type
+    mismatch), and the reverse would leak float64 into later tests. Clear them on the way in and out."""
+    jax.clear_caches()
+    yield
+    jax.clear_caches()
+
+
 @pytest.mark.parametrize("task,extra,steps", DOMAINS, ids=[d[0].split("-")[0] for d in DOMAINS])
 def test_exact_physics_matches_dm_control(task, extra, steps):
     rng = np.random.default_rng(7)
