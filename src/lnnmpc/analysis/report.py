@@ -244,17 +244,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-umap", action="store_true", help="skip the UMAP figures")
     p.add_argument("--out", default=None, help="output folder (default <run>/analysis/<step>)")
     args = p.parse_args(argv)
-    from lnnmpc.train.config import ConfigError
+    from lnnmpc.train.config import command_status
 
-    try:
-        out = analyse(args.run, checkpoint=args.checkpoint, episodes=args.episodes, out=args.out,
-                      seed_index=args.seed_index, k=args.k, alpha=args.alpha, use_umap=not args.no_umap,
-                      length=args.length)
-    except (ConfigError, ValueError) as error:
-        sys.stderr.write(f"error: {error}\n")
-        return 2
-    sys.stdout.write(f"wrote {out}\n")
-    return 0
+    return command_status(lambda: "wrote " + analyse(
+        args.run, checkpoint=args.checkpoint, episodes=args.episodes, out=args.out, seed_index=args.seed_index,
+        k=args.k, alpha=args.alpha, use_umap=not args.no_umap, length=args.length), errors=(ValueError,))
 
 
 if __name__ == "__main__":

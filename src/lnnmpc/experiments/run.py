@@ -22,7 +22,7 @@ import sys
 from lnnmpc.experiments import grid
 from lnnmpc.experiments.aggregate import markdown, study_rows, write_csv
 from lnnmpc.experiments.grid import GridOptions, RunSpec
-from lnnmpc.train.config import ConfigError
+from lnnmpc.train.config import command_status
 
 DEFAULT_OUT = os.path.join("experiments", "results", "studies")
 
@@ -110,18 +110,17 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    try:
+
+    def study() -> str:
         agents = None if args.agents is None else tuple(a.strip() for a in args.agents.split(",") if a.strip())
         options = GridOptions(steps=args.steps, seeds=args.seeds, agents=agents, envs=args.envs,
                               model_size=args.model_size, small=args.small, runs_dir=args.runs_dir,
                               episodes=args.episodes, backend=args.backend)
-        lines = run_study(args.name, options, out=args.out, dry_run=args.dry_run,
-                          train=not (args.no_train or args.aggregate_only), evaluate=not args.aggregate_only)
-    except ConfigError as error:
-        sys.stderr.write(f"error: {error}\n")
-        return 2
-    sys.stdout.write("\n".join(lines) + "\n")
-    return 0
+        return "\n".join(run_study(args.name, options, out=args.out, dry_run=args.dry_run,
+                                   train=not (args.no_train or args.aggregate_only),
+                                   evaluate=not args.aggregate_only))
+
+    return command_status(study)
 
 
 if __name__ == "__main__":

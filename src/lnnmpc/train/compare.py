@@ -18,7 +18,7 @@ import sys
 import numpy as np
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.config import ConfigError
+from lnnmpc.train.config import ConfigError, command_status
 from lnnmpc.train.references import references
 from lnnmpc.train.report import eval_table
 
@@ -105,13 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", required=True, help="figure path (.png); the numbers go to the same name .csv")
     p.add_argument("--title", default=None)
     args = p.parse_args(argv)
-    try:
+
+    def compare() -> str:
         figure, table = write_comparison(load_curves(args.runs, args.labels), args.out, args.title)
-    except ConfigError as error:
-        sys.stderr.write(f"error: {error}\n")
-        return 2
-    sys.stdout.write(f"wrote {figure} and {table}\n")
-    return 0
+        return f"wrote {figure} and {table}"
+
+    return command_status(compare)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,8 @@ from __future__ import annotations
 import dataclasses
 import os
 import re
-from collections.abc import Mapping
+import sys
+from collections.abc import Callable, Mapping
 from typing import Any
 
 from lnnmpc import envs
@@ -36,6 +37,18 @@ BACKENDS = ("mjx", "dm_control")  # evaluation backends: MJX on the device, dm_c
 
 class ConfigError(ValueError):
     """A configuration value is invalid (the message names it and the allowed values)."""
+
+
+def command_status(action: Callable[[], str], errors: tuple[type[Exception], ...] = (ConfigError,)) -> int:
+    """Exit status of a command-line tool's ``action``: 0 after writing the text it returns to stdout, 2 after
+    writing ``error: <message>`` to stderr when it raises one of ``errors`` (input named by its message)."""
+    try:
+        text = action()
+    except errors as error:
+        sys.stderr.write(f"error: {error}\n")
+        return 2
+    sys.stdout.write(f"{text}\n")
+    return 0
 
 
 def _obs_value(name: str, value: str) -> Any:

@@ -86,16 +86,20 @@ def load_policy(run: str, checkpoint: int | None = None) -> Policy:
     step = choose_checkpoint(run, checkpoint)
     loop = build_loop(config)
     check_layout(run, state_signature(loop, config.seeds))
-    return policy_at(Policy(config=config, loop=loop, agent_state=None, checkpoint=step), run, step)
+    return _restored(Policy(config=config, loop=loop, agent_state=None, checkpoint=step), run)
 
 
 def policy_at(policy: Policy, run: str, checkpoint: int) -> Policy:
     """``policy`` (same configuration and loop: compiled programs are reused) with the agent state of
     ``checkpoint`` of ``run``."""
-    step = choose_checkpoint(run, checkpoint)
+    return _restored(dataclasses.replace(policy, checkpoint=choose_checkpoint(run, checkpoint)), run)
+
+
+def _restored(policy: Policy, run: str) -> Policy:
+    """``policy`` with the agent state of its (existing) ``checkpoint`` step of ``run``."""
     like = jax.eval_shape(jax.vmap(policy.loop.init), jax.random.split(jax.random.key(0), policy.config.seeds))
-    state, _ = restore_checkpoint(run, step, like)
-    return dataclasses.replace(policy, agent_state=state.agent, checkpoint=step)
+    state, _ = restore_checkpoint(run, policy.checkpoint, like)
+    return dataclasses.replace(policy, agent_state=state.agent)
 
 
 def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, backend: str = "mjx",
