@@ -8,7 +8,7 @@ import os
 import pytest
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.compare import load_curves, main, shared_references
+from lnnmpc.train.compare import load_curves, main, reference_lines, shared_references
 from lnnmpc.train.config import ConfigError, TrainConfig
 
 
@@ -51,3 +51,14 @@ def test_compare_refuses_bad_input_with_the_reason(tmp_path, capsys):
     assert "has no evaluation rows in eval.csv yet" in capsys.readouterr().err
     other = _run(tmp_path / "other", "tdmpc2", {10000: [[1.0]]}, obs="remove_vel=1")
     assert shared_references(load_curves([a, other])) == {}  # different corruptions: no common reference
+
+
+def test_compare_draws_every_reference_of_eight_variants(tmp_path):
+    variants = [f"{c}-{k}-{n}" for c in ("cfc", "ltc") for k in ("zp", "op") for n in ("det", "stoch")]
+    runs = [_run(tmp_path / v, v, {10000: [[100.0, 200.0]]}) for v in variants]
+    lines = reference_lines(load_curves(runs))
+    # TD-MPC2 plus each variant the thesis reports on cartpole-swingup: none is dropped past the fourth style
+    assert [label for label, _, _ in lines] == list(shared_references(load_curves(runs)))
+    assert len(lines) > 4 and "thesis LTC OP stoch" in [label for label, _, _ in lines]
+    assert lines[4][2] == lines[0][2]  # styles repeat
+    assert main(runs + ["--out", str(tmp_path / "eight.png")]) == 0

@@ -62,6 +62,13 @@ def shared_references(curves: list[dict]) -> dict[str, float]:
     return refs
 
 
+def reference_lines(curves: list[dict]) -> list[tuple[str, float, object]]:
+    """(label, return, matplotlib line style) of every shared reference; styles repeat past four references."""
+    styles = ("--", ":", "-.", (0, (1, 3)))
+    return [(label, value, styles[i % len(styles)])
+            for i, (label, value) in enumerate(shared_references(curves).items())]
+
+
 def write_comparison(curves: list[dict], out: str, title: str | None = None) -> tuple[str, str]:
     """Writes the figure ``out`` and its numbers ``<out without extension>.csv``; returns both paths."""
     import matplotlib
@@ -70,25 +77,32 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None) -> 
     import matplotlib.pyplot as plt
 
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    lines = reference_lines(curves)
+    outside = len(curves) + len(lines) > 6  # a long legend goes beside the axes instead of over the curves
+    fig, ax = plt.subplots(figsize=(9.5 if outside else 7, 4.2))
     rows = []
     for curve in curves:
         steps = [t["env_step"] for t in curve["table"]]
         mean = np.asarray([t["mean"] for t in curve["table"]])
         std = np.asarray([t["std"] for t in curve["table"]])
         seeds = curve["table"][-1]["seeds"]
-        line, = ax.plot(steps, mean, marker="o", markersize=3, label=f"{curve['label']} ({seeds} seeds)")
+        line, = ax.plot(steps, mean, marker="o", markersize=3,
+                        label=f"{curve['label']} ({seeds} seed{'s' if seeds != 1 else ''})")
         ax.fill_between(steps, mean - std, mean + std, alpha=0.2, color=line.get_color())
         rows += [{"run": curve["run"], "label": curve["label"], "env_step": t["env_step"], "mean": t["mean"],
                   "std": t["std"], "seeds": t["seeds"]} for t in curve["table"]]
-    for (label, value), style in zip(shared_references(curves).items(), ("--", ":", "-.", (0, (1, 3))),
-                                     strict=False):
+    for label, value, style in lines:
         ax.axhline(value, linestyle=style, color="gray", linewidth=1, label=f"{label}: {value:.0f}")
     tasks = sorted({c["task"] for c in curves})
-    ax.set(xlabel="environment steps", ylabel="evaluation return (mean ± std over seeds)",
+    one_seed = any(c["table"][-1]["seeds"] == 1 for c in curves)
+    spread = "seeds;\nover episodes for a one-seed run" if one_seed else "seeds"
+    ax.set(xlabel="environment steps", ylabel=f"evaluation return (mean ± std over {spread})",
            title=title or ", ".join(tasks), ylim=(0, 1000))
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left")
+    if outside:
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    else:
+        ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
