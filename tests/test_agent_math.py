@@ -191,3 +191,48 @@ def test_value_errors_name_bad_values(call, needle):
 def test_simnorm_error_names_both_sizes():
     with pytest.raises(ValueError, match=r"20.*8"):
         M.simnorm(jnp.zeros((2, 20)), 8)
+
+
+def _nll_reference(mean, sigma, target):
+    """float64 numpy: per-dimension Gaussian NLL and its derivatives w.r.t. the mean and σ."""
+    err = target - mean
+    per_dim = 0.5 * (err / sigma) ** 2 + np.log(sigma) + 0.5 * np.log(2 * np.pi)
+    return per_dim, -err / sigma ** 2, 1.0 / sigma - err ** 2 / sigma ** 3
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.5, 1.0])
+def test_gaussian_nll_loss_values_and_gradients_match_float64(beta):
+    rng = np.random.default_rng(7)
+    mean, target = rng.normal(size=(2, 5, 4)), rng.normal(size=(2, 5, 4))
+    sigma = rng.uniform(0.05, 2.0, size=(2, 5, 4))
+    per_dim, d_mean, d_sigma = _nll_reference(mean, sigma, target)
+    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    loss, nll, floored = M.gaussian_nll_loss(f32(mean), f32(sigma), f32(target), beta)
+    np.testing.assert_allclose(nll, per_dim.mean(-1), rtol=1e-5, atol=1e-5)
+    weight = sigma ** (2 * beta)  # held constant in the gradient (stop_gradient)
+    np.testing.assert_allclose(loss, (weight * per_dim).mean(-1), rtol=1e-5, atol=1e-5)
+    assert not np.asarray(floored).any()
+    g_mean, g_sigma = jax.grad(lambda m, s: M.gaussian_nll_loss(m, s, f32(target), beta)[0].sum(),
+                               argnums=(0, 1))(f32(mean), f32(sigma))
+    np.testing.assert_allclose(g_mean, weight * d_mean / 4, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(g_sigma, weight * d_sigma / 4, rtol=1e-4, atol=1e-4)
+    if beta == 1.0:  # β-NLL with β = 1: the mean's gradient is the halved squared error's, σ-free
+        np.testing.assert_allclose(g_mean, (mean - target) / 4, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("beta", [0.0, 1.0])
+def test_gaussian_nll_free_bits_floor_stops_the_gradient(beta):
+    mean = jnp.asarray([[0.0, 0.0], [0.0, 0.0]])
+    target = jnp.asarray([[0.01, -0.01], [1.0, -1.0]])  # sample 0 predicted closely, sample 1 badly
+    sigma = jnp.full((2, 2), 0.1)
+    loss, nll, floored = M.gaussian_nll_loss(mean, sigma, target, beta, free_bits=-1.0)
+    per_dim, _, _ = _nll_reference(np.zeros((2, 2)), np.full((2, 2), 0.1), np.asarray(target, np.float64))
+    assert per_dim[0].mean() < -1.0 < per_dim[1].mean()
+    np.testing.assert_array_equal(floored, [True, False])
+    np.testing.assert_allclose(nll, np.maximum(per_dim.mean(-1), -1.0), rtol=1e-5)
+    if beta == 0:
+        np.testing.assert_allclose(loss, np.maximum(per_dim.mean(-1), -1.0), rtol=1e-5)
+    g_mean, g_sigma = jax.grad(lambda m, s: M.gaussian_nll_loss(m, s, target, beta, -1.0)[0].sum(),
+                               argnums=(0, 1))(mean, sigma)
+    assert np.all(np.asarray(g_mean)[0] == 0) and np.all(np.asarray(g_sigma)[0] == 0)
+    assert np.all(np.abs(np.asarray(g_mean)[1]) > 0) and np.all(np.abs(np.asarray(g_sigma)[1]) > 0)

@@ -181,3 +181,38 @@ def test_symlog_input_transform_squashes_what_the_cell_reads(zp_agent):
         make_agent("cfc-zp-det", OBS, ACT, overrides={"input_transform": "log"})
     assert make_agent("ltc-op-det", OBS, ACT, overrides={"input_transform": "symlog"}).config.model.input_transform \
         == "symlog"
+
+
+@pytest.mark.parametrize("name", ["cfc-zp-stoch", "cfc-op-stoch"])
+def test_stochastic_prediction_loss_is_the_beta_nll_of_the_predictor(name):
+    """The stochastic variants' per-step loss and diagnostics from the predictor's (mean, σ), against float64
+    numpy, for the default β = 1 and the thesis's plain NLL (β = 0); free bits only for OP."""
+    assert (make_agent(name, OBS, ACT).config.nll_beta, make_agent(name, OBS, ACT).config.free_bits) == (1.0, -2.0)
+    with pytest.raises(ValueError, match=r"nll_beta must be in \[0, 1\], got 2.0"):
+        make_agent(name, OBS, ACT, overrides={"nll_beta": 2})
+    op = name.split("-")[1] == "op"
+    for beta in (1.0, 0.0):
+        agent = tiny(name, nll_beta=beta, free_bits=0.7)  # untrained σ ≈ softplus(0): exact NLL ≈ 0.55
+        state = agent.init(jax.random.key(0))
+        k = jax.random.split(jax.random.key(4), 3)
+        H, D = 3, agent.config.model.target_dim
+        z = jax.random.normal(k[0], (H, B, agent.config.model.hidden_size))
+        action = jnp.tanh(jax.random.normal(k[1], (H, B, ACT)))
+        close = agent._apply(state.params, z, action, method="predict")[0] + 0.01 * jax.random.normal(k[2], (H, B, D))
+        target = jnp.where(jnp.arange(B)[:, None] < B // 2, close, 2.0 * jax.random.normal(k[2], (H, B, D)))
+        loss, info = agent.prediction_loss(state.params, z, action, target)
+        mean, sigma = (np.asarray(x, np.float64) for x in agent._apply(state.params, z, action, method="predict"))
+        per_dim = 0.5 * ((np.asarray(target) - mean) / sigma) ** 2 + np.log(sigma) + 0.5 * np.log(2 * np.pi)
+        nll = per_dim.mean(-1)
+        weighted = (sigma ** (2 * beta) * per_dim).mean(-1)
+        if op:
+            floored = nll <= 0.7
+            assert floored.any() and not floored.all()  # the test exercises both branches
+            weighted = np.where(floored, np.maximum(weighted, 0.7) if beta == 0 else weighted, weighted)
+            nll = np.maximum(nll, 0.7)
+            np.testing.assert_allclose(info["free_bits_floored"], floored.mean(1), rtol=1e-6)
+        else:
+            assert "free_bits_floored" not in info
+        np.testing.assert_allclose(loss, weighted.mean(1), rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(info["prediction_nll"], nll.mean(1), rtol=1e-4, atol=1e-5)
+        np.testing.assert_allclose(info["prediction_sigma"], sigma.mean((1, 2)), rtol=1e-5)

@@ -15,7 +15,10 @@ state h_{t−1} the actor held before reading o_t, and a_{t−1} (zeros at an ep
 * prediction (weighted ρ^t, averaged over the H steps, coefficient ``consistency_coef``), from (z_t, a_t):
   ZP det ‖ẑ_{t+1} − sg(z_{t+1})‖² (mean over dims); ZP stoch the Gaussian NLL of sg(z_{t+1}); OP det
   ‖ô_{t+1} − o_{t+1}‖²; OP stoch the Gaussian NLL of o_{t+1} with free bits: per step and sample,
-  max(NLL, ``free_bits``). NLLs are in nats per dimension (mean over dims, like the MSEs);
+  max(NLL, ``free_bits``). NLLs are in nats per dimension (mean over dims, like the MSEs). Each dimension's
+  NLL is weighted by stop_gradient(σ^(2β)) (β-NLL, ``nll_beta``; β = 0 is the plain NLL of the thesis): with
+  β = 1 the mean gets the gradient of ½ × the squared error, as in the det variants, instead of one 1/σ²
+  times larger (400× at σ = 0.05), while σ still goes to the NLL's optimum;
 * reward and Q: TD-MPC2's two-hot soft cross-entropies at z_0..z_{H−1} (the encoder's latents), Q against
   TD(λ) targets (:func:`lnnmpc.agents.returns.lambda_returns`) with bootstrap values
   v_{t+1} = min of 2 random Polyak target heads at (sg(z_{t+1}), π(sg(z_{t+1}))).
@@ -50,8 +53,17 @@ class LNNConfig(TDMPC2Config):
     and burn-in T, TD(λ) and free bits. T = 10 and λ = 0.95 are this project's choice (the thesis gives none).
 
     ``free_bits`` (OP stoch only; the thesis's eq. 4.16 floor, value not given) is in nats per observation
-    dimension: a dimension predicted exactly with σ = 0.1 has NLL −1.38, so −1 stops the loss from sharpening
-    σ (and the mean) further once the average dimension is predicted to about that precision.
+    dimension. A dimension predicted exactly has NLL log σ + ½ log 2π: −2.08 at the default ``min_sigma`` 0.05,
+    −1.38 at σ = 0.1, −0.92 at σ = 0.25. The default −2.0 stops the loss only once the average dimension is
+    predicted at about the σ floor; −1 (this project's first default) stopped cartpole-swingup's OP-stoch
+    model at σ ≈ 0.14 within 16K steps (the loss sat on the floor from then on, and the agent scored ~250 where
+    OP det reached ~800: `experiments/results/variants-cartpole-swingup-50k-h100`).
+
+    ``nll_beta`` β ∈ [0, 1] weights the stochastic variants' per-dimension NLL by stop_gradient(σ^(2β))
+    (β-NLL, Seitzer et al. 2022). The plain NLL (β = 0) scales the mean's gradient by 1/σ²: with σ at its floor
+    it outweighed the reward and value losses in the shared encoder (gradient norms 10–1,000 against 0.2–5 for
+    the det variants in that run, clipped at 20). The default β = 1 gives the mean the det variants' gradient
+    scale; β = 0 reproduces the thesis's objective.
     """
 
     model: LNNModelConfig
@@ -60,13 +72,16 @@ class LNNConfig(TDMPC2Config):
     rho: float = 1.0
     burn_in: int = 10
     lambda_: float = 0.95
-    free_bits: float = -1.0  # floor of the OP-stoch per-step NLL, nats per dimension
+    free_bits: float = -2.0  # floor of the OP-stoch per-step NLL, nats per dimension
+    nll_beta: float = 1.0  # β-NLL weight stop_gradient(σ^(2β)) of the stochastic variants' NLL; 0 = plain NLL
 
     def __post_init__(self):
         super().__post_init__()
         check_int_at_least("burn_in", self.burn_in, 0)
         if not 0 <= self.lambda_ <= 1:
             raise ValueError(f"lambda_ must be in [0, 1], got {self.lambda_!r}")
+        if not 0 <= self.nll_beta <= 1:
+            raise ValueError(f"nll_beta must be in [0, 1], got {self.nll_beta!r}")
 
 
 @struct.dataclass
@@ -119,15 +134,23 @@ class LNNTDMPC2(TDMPC2):
         return self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
 
     # -------------------------------------------------------------------------------------- losses
-    def prediction_loss(self, params, z: jax.Array, action: jax.Array, target: jax.Array) -> jax.Array:
-        """Per-step prediction loss (H,) of the next latent / observation ``target`` (H, B, D) from (z_t, a_t)."""
+    def prediction_loss(self, params, z: jax.Array, action: jax.Array,
+                        target: jax.Array) -> tuple[jax.Array, dict[str, jax.Array]]:
+        """Per-step prediction loss (H,) of the next latent / observation ``target`` (H, B, D) from (z_t, a_t),
+        and per-step diagnostics (H,): for the stochastic variants ``prediction_nll`` (the plain NLL per
+        dimension, after the free-bits floor), ``prediction_sigma`` (mean σ) and, OP only, ``free_bits_floored``
+        (fraction of samples on the floor, which pass no gradient)."""
         mean, sigma = self._apply(params, z, action, method="predict")
         if sigma is None:
-            return jnp.mean((mean - target) ** 2, axis=(1, 2))
-        nll = -M.gaussian_log_prob((target - mean) / sigma, jnp.log(sigma)) / target.shape[-1]  # (H, B)
-        if self.config.model.objective == "op":
-            nll = jnp.maximum(nll, self.config.free_bits)
-        return nll.mean(axis=1)
+            return jnp.mean((mean - target) ** 2, axis=(1, 2)), {}
+        op = self.config.model.objective == "op"
+        loss, nll, floored = M.gaussian_nll_loss(mean, sigma, target, self.config.nll_beta,
+                                                 self.config.free_bits if op else None)  # (H, B) each
+        info = {"prediction_sigma": sigma.mean(axis=(1, 2))}
+        if op:
+            info["free_bits_floored"] = floored.mean(axis=1)
+        info["prediction_nll"] = nll.mean(axis=1)
+        return loss.mean(axis=1), info
 
     def world_model_loss(self, params, target_q, batch, key):
         """Scalar loss and (stop-gradient latents (H + 1, B, N), metrics) for a window (module docstring)."""
@@ -143,7 +166,8 @@ class LNNTDMPC2(TDMPC2):
 
         target = next_z if cfg.model.objective == "zp" else batch["obs"][T + 1:]
         weights = M.discounted_weights(H, cfg.rho)
-        prediction = jnp.sum(weights * self.prediction_loss(params, z, action, target)) / H
+        per_step, info = self.prediction_loss(params, z, action, target)
+        prediction = jnp.sum(weights * per_step) / H
         reward_ce = M.soft_cross_entropy(self._apply(params, z, action, method="reward"), reward, num_bins,
                                          cfg.vmin, cfg.vmax).mean(axis=1)
         q_logits = self._apply(params, z, action, False, method="q", rngs={"dropout": k_drop})
@@ -152,7 +176,7 @@ class LNNTDMPC2(TDMPC2):
         value_loss = jnp.sum(weights * value_ce.sum(axis=0)) / (H * cfg.model.num_q)
         total = cfg.consistency_coef * prediction + cfg.reward_coef * reward_loss + cfg.value_coef * value_loss
         metrics = {"prediction_loss": prediction, "reward_loss": reward_loss, "value_loss": value_loss,
-                   "total_loss": total}
+                   "total_loss": total, **{k: jnp.sum(weights * v) / H for k, v in info.items()}}
         return total, (jax.lax.stop_gradient(zs), metrics)
 
     # ------------------------------------------------------------ acting protocol (agents/registry.py)

@@ -111,6 +111,29 @@ def simnorm(x: jax.Array, group_size: int = 8) -> jax.Array:
 
 
 # ---------------------------------------------------------------------------------------------------------------
+# Gaussian prediction loss (the stochastic LNN variants)
+# ---------------------------------------------------------------------------------------------------------------
+def gaussian_nll_loss(mean: jax.Array, sigma: jax.Array, target: jax.Array, beta: float = 0.0,
+                      free_bits: float | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """β-NLL of ``target`` under N(mean, σ²), per sample, in nats per dimension, with optional free bits.
+
+    mean, sigma, target: ``(..., D)``. Returns (loss, nll, floored), each ``(...)``:
+    nll = mean over D of ½((t − μ)/σ)² + log σ + ½ log 2π, clipped from below at ``free_bits`` when given;
+    loss = mean over D of stop_gradient(σ^(2β)) × the per-dimension NLL (β = 0: the NLL itself), except that a
+    sample whose NLL is at or below ``free_bits`` (``floored``) passes no gradient. With β = 1 the mean's gradient
+    is (μ − t)/D, the squared error's halved, instead of (μ − t)/(σ² D).
+    """
+    per_dim = 0.5 * jnp.square((target - mean) / sigma) + jnp.log(sigma) + _HALF_LOG_2PI
+    nll = per_dim.mean(axis=-1)
+    loss = nll if beta == 0 else (jax.lax.stop_gradient(sigma ** (2 * beta)) * per_dim).mean(axis=-1)
+    if free_bits is None:
+        return loss, nll, jnp.zeros(nll.shape, bool)
+    floored = nll <= free_bits
+    loss = jnp.where(floored, jax.lax.stop_gradient(jnp.maximum(loss, free_bits) if beta == 0 else loss), loss)
+    return loss, jnp.maximum(nll, free_bits), floored
+
+
+# ---------------------------------------------------------------------------------------------------------------
 # Tanh-Gaussian policy
 # ---------------------------------------------------------------------------------------------------------------
 def gaussian_log_prob(eps: jax.Array, log_std: jax.Array) -> jax.Array:
