@@ -19,3 +19,24 @@ def test_append_csv_widens_the_header_when_rows_bring_new_columns(tmp_path):
     truncate_csv(path, 4000)
     with open(path, newline="") as f:
         assert [r["env_step"] for r in csv.DictReader(f)] == ["2000", "4000"]
+
+
+def test_training_plot_has_a_panel_per_logged_metric_and_a_line_per_seed(tmp_path):
+    """train.csv as the trainer writes it: seed-phase rows without losses, then per-episode losses of 2 seeds."""
+    from lnnmpc.train.report import plot_training, training_panels
+
+    rows = [{"env_step": "1000", "seed": str(s), "episode_return": "5.0", "total_loss": "", "grad_norm": ""}
+            for s in (0, 1)]
+    rows += [{"env_step": str(step), "seed": str(s), "episode_return": str(step / 100 + s),
+              "total_loss": str(1.0 / step), "grad_norm": str(0.5 + s)}
+             for step in (2000, 3000, 4000) for s in (0, 1)]
+    rows.append({"env_step": "5000", "seed": "1", "episode_return": "nan", "total_loss": "x", "grad_norm": "2"})
+    panels = training_panels(rows)
+    assert list(panels) == ["episode_return", "total_loss", "grad_norm"]
+    steps, values = panels["episode_return"][1]
+    assert steps.tolist() == [1000, 2000, 3000, 4000] and values.tolist() == [5.0, 21.0, 31.0, 41.0]
+    assert panels["total_loss"][0][0].tolist() == [2000, 3000, 4000]  # blank seed-phase cells left out
+    assert panels["grad_norm"][1][0].tolist() == [2000, 3000, 4000, 5000]
+    assert training_panels([]) == {}
+    assert plot_training(str(tmp_path), rows, "cartpole-balance · tdmpc2") == list(panels)
+    assert (tmp_path / "training.png").stat().st_size > 10_000

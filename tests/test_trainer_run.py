@@ -93,6 +93,7 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     assert "| agent | tdmpc2 (model size 1M, small) |" in summary
     assert summary.count("\n") < 40  # one screen
     assert (reference / "curve.png").stat().st_size > 10_000
+    assert (reference / "training.png").stat().st_size > 10_000
     timing = _rows(reference / "timing.csv")
     phases = [r["phase"] for r in timing]
     assert phases[:2] == ["seed_phase", "update_burst"] and {"train_chunk", "evaluate", "checkpoint"} <= set(phases)

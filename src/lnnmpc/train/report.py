@@ -1,4 +1,5 @@
-"""What a person looks at: the live progress line, ``curve.png``, ``summary.md`` and optional TensorBoard scalars.
+"""What a person looks at: the live progress line, ``curve.png``, ``training.png``, ``summary.md`` and optional
+TensorBoard scalars.
 
 Everything here reads the run folder's files (config.json, eval.csv, train.csv), so ``write_reports(run)`` can
 redraw a finished or running run at any time (``python -m lnnmpc.train.cli report RUN``).
@@ -78,6 +79,68 @@ def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str) 
     plt.close(fig)
 
 
+TRAINING_LOG_SCALE = ("grad_norm", "prediction_loss", "consistency_loss")  # spans decades: log y axis
+
+
+def training_panels(rows: list[dict]) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
+    """train.csv rows -> {metric: {seed: (env_steps, values)}} for every logged metric, in column order.
+
+    Blank cells (the seed phase logs returns but no losses) and non-numeric ones are left out; a metric with no
+    value at all is dropped."""
+    if not rows:
+        return {}
+    panels = {}
+    for name in (k for k in rows[0] if k not in ("env_step", "seed")):
+        per_seed: dict[int, tuple[list, list]] = {}
+        for r in rows:
+            try:
+                value = float(r.get(name) or "nan")
+            except ValueError:
+                continue
+            if np.isnan(value):
+                continue
+            steps, values = per_seed.setdefault(int(r["seed"]), ([], []))
+            steps.append(int(r["env_step"]))
+            values.append(value)
+        if per_seed:
+            panels[name] = {s: (np.asarray(a), np.asarray(b)) for s, (a, b) in sorted(per_seed.items())}
+    return panels
+
+
+def plot_training(run: str, rows: list[dict], title: str) -> list[str]:
+    """Writes training.png: one panel per train.csv metric (episode return, losses, gradient norm, Q scale,
+    entropy, the stochastic variants' σ and NLL...) against environment steps, a line per seed; returns the
+    metric names drawn."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = training_panels(rows)
+    if not panels:
+        return []
+    cols = 4
+    nrows = -(-len(panels) // cols)
+    fig, axes = plt.subplots(nrows, cols, figsize=(3.2 * cols, 2.4 * nrows), squeeze=False)
+    for ax, (name, per_seed) in zip(axes.flat, panels.items(), strict=False):
+        for seed, (steps, values) in per_seed.items():
+            ax.plot(steps, values, linewidth=1, label=f"seed {seed}")
+        if name in TRAINING_LOG_SCALE and all((v > 0).all() for _, v in per_seed.values()):
+            ax.set_yscale("log")
+        ax.set_title(name, fontsize=9)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    axes.flat[0].legend(fontsize=6)
+    fig.suptitle(f"{title}: train.csv (per finished episode)", fontsize=10)
+    fig.supxlabel("environment steps", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(os.path.join(run, "training.png"), dpi=90)
+    plt.close(fig)
+    return list(panels)
+
+
 def _agent_size(c: dict) -> str:
     """TD-MPC2's model size; the liquid agents have one (light) configuration, which model_size does not touch."""
     return f"model size {c['model_size']}M" if c["agent"] == "tdmpc2" else "light configuration"
@@ -91,7 +154,7 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
     done = table[-1]["env_step"] if table else 0
     lines = [f"# {c['task']} · {c['agent']} · {c['seeds']} seed(s)", "",
              f"Run folder `{run}`; settings in `config.json`, returns in `eval.csv`, losses in `train.csv`, "
-             "plot `curve.png`.", "",
+             "plots `curve.png` (returns) and `training.png` (losses and the rest of `train.csv`).", "",
              "| setting | value |", "|---|---|",
              f"| environment steps | {done:,} of {c['steps']:,} (seed phase {c['seed_steps']:,}) |",
              f"| training corruptions | {obs} |", f"| evaluation corruptions | {eval_obs} |",
@@ -118,7 +181,8 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
 
 
 def write_reports(run: str, extra: dict | None = None) -> None:
-    """(Re)writes curve.png (if matplotlib is installed) and summary.md from the run folder's files."""
+    """(Re)writes curve.png and training.png (if matplotlib is installed) and summary.md from the run folder's
+    files."""
     config = runfolder.read_config(run)
     c = config["config"]
     table = eval_table(runfolder.read_csv(os.path.join(run, "eval.csv")))
@@ -130,6 +194,7 @@ def write_reports(run: str, extra: dict | None = None) -> None:
     else:
         if table:
             plot_curve(run, table, refs, f"{c['task']} · {c['agent']}")
+        plot_training(run, runfolder.read_csv(os.path.join(run, "train.csv")), f"{c['task']} · {c['agent']}")
     with open(os.path.join(run, "summary.md"), "w") as f:
         f.write(summary_text(run, config, table, refs, extra or {}))
 
