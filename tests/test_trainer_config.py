@@ -104,10 +104,41 @@ def test_resuming_with_changed_agent_hyperparameters_is_refused(tmp_path):
     runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": saved})
     with pytest.raises(ConfigError) as error:
         check_agent_config(run, agent)
-    assert "planner.horizon: checkpoint has 7, now 3" in str(error.value) and "--set KEY=VALUE" in str(error.value)
+    assert "planner.horizon: checkpoint has 7, now 3" in str(error.value)
+    assert "Restore them with --set planner.horizon=7 or start a new run" in str(error.value)
     runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run),
                            {"agent_config": agent_config_json(agent)})
     check_agent_config(run, agent)  # equal hyperparameters: no error
+
+
+def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_path):
+    """A checkpoint from before nll_beta existed and with the old free-bits default: a det variant resumes (it uses
+    neither); an OP-stoch run is refused with the exact --set flags, and resumes once they are given."""
+    from lnnmpc.agents.registry import make_agent
+    from lnnmpc.train.compat import agent_config_json, check_agent_config
+
+    run = str(tmp_path)
+
+    def saved_like(agent_config):
+        old = agent_config_json(agent_config)
+        del old["nll_beta"]  # the field did not exist
+        old["free_bits"] = -1.0
+        runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": old})
+
+    det = make_agent("cfc-op-det", 5, 1).config
+    saved_like(det)
+    check_agent_config(run, det)
+    stoch = make_agent("cfc-op-stoch", 5, 1).config
+    saved_like(stoch)
+    with pytest.raises(ConfigError) as error:
+        check_agent_config(run, stoch)
+    message = str(error.value)
+    assert "free_bits: checkpoint has -1.0, now -2.0" in message and "nll_beta: checkpoint has 0.0, now 1.0" in message
+    assert "Restore them with --set free_bits=-1.0 --set nll_beta=0.0" in message
+    check_agent_config(run, make_agent("cfc-op-stoch", 5, 1, overrides={"free_bits": "-1.0", "nll_beta": "0.0"}).config)
+    zp = make_agent("cfc-zp-stoch", 5, 1, overrides={"nll_beta": 0}).config
+    saved_like(zp)
+    check_agent_config(run, zp)  # ZP does not use free bits
 
 
 def test_cli_exits_with_status_2_and_the_message(capsys):

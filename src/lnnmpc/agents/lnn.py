@@ -84,6 +84,16 @@ class LNNConfig(TDMPC2Config):
             raise ValueError(f"nll_beta must be in [0, 1], got {self.nll_beta!r}")
 
 
+    def inactive_fields(self) -> set[str]:
+        """Flattened config keys (``model.min_sigma``) that do not affect this variant's computation."""
+        unused = set()
+        if not self.model.stochastic:
+            unused |= {"free_bits", "nll_beta", "model.min_sigma", "model.max_sigma"}
+        elif self.model.objective == "zp":
+            unused.add("free_bits")
+        return unused
+
+
 @struct.dataclass
 class LNNCarry:
     """Acting carry of one environment: encoder state h_{t−1} (N,), previous action (A,), plan mean (H_plan, A)."""

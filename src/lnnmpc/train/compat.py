@@ -41,17 +41,34 @@ def agent_config_json(agent_config) -> dict:
     return json.loads(json.dumps(jsonable(agent_config), default=str))
 
 
+# Agent fields added after runs existed, with the value that computes what the code did before: a checkpoint whose
+# saved agent configuration lacks the field resumes when the field has that value now.
+ADDED_AGENT_FIELDS = {"nll_beta": 0.0, "model.input_transform": "none"}
+
+
 def check_agent_config(run: str, agent_config) -> None:
     """Refuses to resume when the agent's resolved hyperparameters differ from the checkpoint's (e.g. the code's
-    defaults changed since the run): the continuation would no longer be the same training."""
+    defaults changed since the run): the continuation would no longer be the same training. Fields the agent does
+    not use (``agent_config.inactive_fields()``, e.g. free bits of a det variant) are not compared; a field the
+    checkpoint predates (:data:`ADDED_AGENT_FIELDS`) must hold its old behaviour's value. The error names the
+    ``--set`` flags that restore the checkpoint's values."""
     saved = _flatten(runfolder.read_config(run).get("agent_config") or {})
     current = _flatten(agent_config_json(agent_config))
-    changed = [f"{k}: checkpoint has {saved.get(k)!r}, now {current.get(k)!r}"
-               for k in sorted(saved.keys() | current.keys()) if saved.get(k) != current.get(k)]
+    inactive = agent_config.inactive_fields() if hasattr(agent_config, "inactive_fields") else set()
+    changed, restore = [], []
+    for key in sorted(saved.keys() | current.keys()):
+        if key in inactive:
+            continue
+        was = saved[key] if key in saved else ADDED_AGENT_FIELDS.get(key)
+        if was != current.get(key):
+            changed.append(f"{key}: checkpoint has {was!r}, now {current.get(key)!r}")
+            if was is not None and key in current:
+                restore.append(f"--set {key}={was}")
     if changed:
+        how = f"Restore them with {' '.join(restore)}" if restore else "Restore them with --set KEY=VALUE"
         raise ConfigError(f"cannot resume {run}: the agent's hyperparameters differ from the checkpoint's "
                           f"({'; '.join(changed)}): the code's defaults or the --set overrides changed since the run. "
-                          "Restore them with --set KEY=VALUE (e.g. --set planner.horizon=3) or start a new run")
+                          f"{how} or start a new run")
 
 
 def _flatten(tree: dict, prefix: str = "") -> dict:
