@@ -56,6 +56,41 @@ def test_effective_rank_of_known_matrices():
         metrics.effective_rank(np.zeros((3, 3)))
 
 
+def test_device_effective_rank_matches_the_float64_reference():
+    from lnnmpc.train.loop import effective_rank
+
+    rng = np.random.default_rng(5)
+    batch = np.stack([rng.normal(size=(40, 6)), np.outer(rng.normal(size=40), rng.normal(size=6)),
+                      rng.normal(size=(40, 6)) * np.array([5.0, 1.0, 0.1, 0.0, 0.0, 2.0])])
+    got = np.asarray(effective_rank(jnp.asarray(batch, jnp.float32)))
+    np.testing.assert_allclose(got, [metrics.effective_rank(z) for z in batch], rtol=2e-3)
+    assert got.shape == (3,) and got[1] == pytest.approx(1.0, abs=2e-3)
+
+
+def test_evaluation_logs_each_episodes_effective_rank_as_the_analysis_computes_it():
+    """The trainer's evaluation program returns, per episode, the return and the effective rank of the latents
+    it planned from; the analysis rollout of the same key plays the same episodes (float64 NumPy rank)."""
+    import dataclasses
+
+    from lnn_helpers import quick_jit, tiny_agent
+
+    from lnnmpc import envs
+    from lnnmpc.analysis.rollout import rollout
+    from lnnmpc.train.loop import LoopConfig, TrainingLoop
+
+    env = envs.make("cartpole-swingup")
+    short = dataclasses.replace(env, spec=dataclasses.replace(env.spec, control_steps=60))  # 30 agent steps
+    agent = tiny_agent("cfc-op-det", env.observation_size, env.action_size)
+    loop = TrainingLoop(agent, env, short, LoopConfig(batch_size=8, replay_capacity=64, eval_episodes=3))
+    state, key = agent.init(jax.random.key(3)), jax.random.key(4)
+    returns, ranks = (np.asarray(x) for x in quick_jit(loop.evaluate_with_rank)(state, key))
+    rec = rollout(agent, state, short, key, 3)
+    assert rec["latent"].shape == (3, 30, agent.config.model.hidden_size)
+    np.testing.assert_allclose(returns, rec["reward"].sum(axis=1), rtol=1e-5)
+    np.testing.assert_allclose(ranks, [metrics.effective_rank(z) for z in rec["latent"]], rtol=2e-3)
+    assert np.all((ranks >= 1) & (ranks <= agent.config.model.hidden_size))
+
+
 def test_k_step_errors_of_a_biased_toy_model_accumulate_the_bias():
     """True o_{t+1} = o_t + a_t; the model adds a bias b each step, so the j-th step is off by j·b."""
     T, bias = 40, 0.1
@@ -135,3 +170,16 @@ def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
     assert [r["env_step"] for r in ranks] == ["0", "500"]
     assert all(1.0 <= float(r["effective_rank"]) <= 16 for r in ranks)
     assert ranks[0]["effective_rank"] != ranks[1]["effective_rank"]  # each checkpoint's own parameters
+    # A run whose trainer logged the evaluations' ranks: the report takes them from eval.csv, rolls out nothing more
+    runfolder.write_csv(os.path.join(run, "eval.csv"), ["env_step", "seed", "episode", "return", "effective_rank"],
+                        [{"env_step": step, "seed": 0, "episode": e, "return": 1.0, "effective_rank": step / 100 + e}
+                         for step in (100, 300, 500) for e in (0, 1)])
+    compiled = rollout_program.cache_info().misses
+    hits = rollout_program.cache_info().hits
+    out = report.analyse(run, episodes=2, length=40, use_umap=False)
+    # one rollout, of the newest checkpoint (a new policy object: a new program); no other checkpoint's (hits)
+    assert rollout_program.cache_info().misses == compiled + 1 and rollout_program.cache_info().hits == hits
+    with open(os.path.join(out, "effective_rank.csv")) as f:
+        ranks = list(csv.DictReader(f))
+    assert [(r["env_step"], float(r["effective_rank"]), float(r["std"])) for r in ranks] == [
+        ("100", 1.5, 0.5), ("300", 3.5, 0.5), ("500", 5.5, 0.5)]

@@ -38,5 +38,11 @@ def test_training_plot_has_a_panel_per_logged_metric_and_a_line_per_seed(tmp_pat
     assert panels["total_loss"][0][0].tolist() == [2000, 3000, 4000]  # blank seed-phase cells left out
     assert panels["grad_norm"][1][0].tolist() == [2000, 3000, 4000, 5000]
     assert training_panels([]) == {}
-    assert plot_training(str(tmp_path), rows, "cartpole-balance · tdmpc2") == list(panels)
+    evals = [{"env_step": str(step), "seed": str(s), "episode": str(e), "return": "1",
+              "effective_rank": str(step / 1000 + e + s)} for step in (2000, 4000) for s in (0, 1) for e in (0, 1)]
+    ranked = training_panels(rows, evals)
+    assert list(ranked) == list(panels) + ["effective_rank (eval)"]
+    steps, values = ranked["effective_rank (eval)"][1]
+    assert steps.tolist() == [2000, 4000] and values.tolist() == [3.5, 5.5]  # mean over the episodes
+    assert plot_training(str(tmp_path), rows, "cartpole-balance · tdmpc2", evals) == list(ranked)
     assert (tmp_path / "training.png").stat().st_size > 10_000

@@ -80,7 +80,8 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     assert config["config"]["seeds"] == 2 and config["config"]["replay_capacity"] == 2400
     assert config["num_devices"] == 1
     rows = _rows(reference / "eval.csv")
-    assert set(rows[0]) == {"env_step", "seed", "episode", "return"}
+    assert set(rows[0]) == {"env_step", "seed", "episode", "return", "effective_rank"}
+    assert all(1 <= float(r["effective_rank"]) <= 16 for r in rows)  # small tdmpc2: latent 16
     steps = sorted({int(r["env_step"]) for r in rows})
     assert steps[0] == 400 and steps[-1] >= 1600 and len(rows) == 4 * len(steps)  # 2 seeds x 2 episodes
     assert all(0 <= float(r["return"]) <= 1000 for r in rows)

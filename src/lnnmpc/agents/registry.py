@@ -57,6 +57,14 @@ def task_default_overrides(name: str, task: str, overrides: dict[str, Any] | Non
     return {**defaults, **(overrides or {})}
 
 
+def acting_latent(agent, state, carry, obs):
+    """The latent the agent plans from after reading ``obs``, (..., N): an LNN agent's encoder state h_t (its
+    acting carry's ``h``, after :meth:`act`), else (``tdmpc2``) its per-observation encoder applied to ``obs``."""
+    if hasattr(carry, "h"):
+        return carry.h
+    return agent._apply(state.params, obs, method="encode")
+
+
 def make_agent(name: str, obs_dim: int, action_dim: int, *, model_size: int = 5, small: bool = False,
                overrides: dict[str, Any] | None = None):
     """The agent called ``name`` for observations (obs_dim,) and actions (action_dim,).

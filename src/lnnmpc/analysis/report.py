@@ -12,8 +12,9 @@ Plays deterministic episodes with one seed's agent under the run's evaluation co
 * ``umap-<phase>.png``: UMAP of latents and of true states coloured by log |velocity| (Figures 5.6–5.7;
   ``--no-umap`` skips it);
 * ``effective_rank.csv`` + ``effective_rank.png``: effective rank of the episodes' hidden-state matrices
-  Z (T, N) at every checkpoint the run kept (Figures 5.11–5.12; ``--keep-checkpoints`` of the trainer decides
-  how many there are);
+  Z (T, N) over training (Figures 5.11–5.12): from the trainer's evaluations (eval.csv's ``effective_rank``,
+  every evaluation's episodes) when the run logged it, else by rolling out every checkpoint the run kept
+  (``--keep-checkpoints`` of the trainer decides how many there are);
 * OP agents: ``prediction_error.csv`` + ``prediction.png``: one-step and k-step (``--k`` 10) observation
   prediction errors, mean ± std over episodes (Tables 5.1–5.2, Figures 5.8–5.9).
 """
@@ -179,6 +180,19 @@ def effective_ranks(run: str, steps: list[int], episodes: int, seed_index: int =
     return rows
 
 
+def ranks_from_eval(run: str, seed_index: int, latent_dim: int) -> list[dict]:
+    """:func:`effective_ranks`' rows from the trainer's evaluations (eval.csv's ``effective_rank`` of seed
+    ``seed_index``, mean ± std over the episodes of each evaluation); [] when the run did not log it."""
+    rows = [r for r in runfolder.read_csv(os.path.join(run, "eval.csv"))
+            if r.get("effective_rank") not in (None, "") and int(r["seed"]) == seed_index]
+    out = []
+    for step in sorted({int(r["env_step"]) for r in rows}):
+        ranks = np.array([float(r["effective_rank"]) for r in rows if int(r["env_step"]) == step])
+        out.append({"env_step": step, "effective_rank": float(ranks.mean()), "std": float(ranks.std()),
+                    "episodes": len(ranks), "latent_dim": latent_dim})
+    return out
+
+
 def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out: str | None = None,
             seed_index: int = 0, k: int = 10, alpha: float = 1.0, use_umap: bool = True, seed: int = 0,
             length: int | None = None) -> str:
@@ -222,9 +236,9 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
         rolled = metrics.k_step_predictions(predict, step, z, a, starts, k)
         plot_predictions(os.path.join(out, "prediction.png"), o, one, list(zip(starts, rolled, strict=True)),
                          observation_names(names, policy.loop.eval_env.kept, o.shape[-1]))
-    # Last: it rolls out every kept checkpoint (the slowest part).
-    ranks = effective_ranks(run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length,
-                            policy)
+    # Last: without the trainer's logged ranks it rolls out every kept checkpoint (the slowest part).
+    ranks = ranks_from_eval(run, seed_index, rec["latent"].shape[-1]) or effective_ranks(
+        run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length, policy)
     write_csv(os.path.join(out, "effective_rank.csv"), ranks)
     plot_series(os.path.join(out, "effective_rank.png"), [r["env_step"] for r in ranks],
                 [r["effective_rank"] for r in ranks], [r["std"] for r in ranks], "environment steps",

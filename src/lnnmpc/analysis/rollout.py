@@ -17,12 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
-def _latent(agent, state, carry, obs):
-    """Latents (n, N): the LNN carry's h, else the agent's per-observation encoder."""
-    if hasattr(carry, "h"):
-        return carry.h
-    return agent._apply(state.params, obs, method="encode")
+from lnnmpc.agents.registry import acting_latent
 
 
 @functools.lru_cache(maxsize=8)
@@ -36,7 +31,7 @@ def rollout_program(agent, env, episodes: int, steps: int | None = None):
         act = jax.vmap(lambda c, o, dt, kk, f: agent.act(state, c, o, dt, kk, explore=False, first_step=f))
         action, carry = act(carry, s.obs, s.dt, jax.random.split(k, n), s.t == 0)
         nxt = jax.vmap(env.step)(s, action)
-        record = {"latent": _latent(agent, state, carry, s.obs), "obs": s.obs, "clean_obs": s.clean_obs,
+        record = {"latent": acting_latent(agent, state, carry, s.obs), "obs": s.obs, "clean_obs": s.clean_obs,
                   "qpos": s.physics.qpos, "qvel": s.physics.qvel, "action": action, "dt": s.dt,
                   "reward": nxt.reward}
         return (nxt, carry), record

@@ -30,6 +30,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from lnnmpc import envs as envs_lib
+from lnnmpc.agents.registry import acting_latent
 from lnnmpc.replay import ReplayState, replay_add, replay_init, replay_sample
 
 
@@ -154,6 +155,15 @@ class TrainingLoop:
     # -------------------------------------------------------------------------------------- evaluate
     def evaluate(self, agent: Any, key: jax.Array) -> jax.Array:
         """Returns (eval_episodes,) of deterministic MPPI episodes, run in parallel, each with its own seed."""
+        return self._eval_episodes(agent, key, latents=False)[0]
+
+    def evaluate_with_rank(self, agent: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """:meth:`evaluate`'s returns (eval_episodes,) and each episode's effective rank (eval_episodes,) of its
+        latent matrix Z (T, N) (:func:`effective_rank`; the thesis's Figs. 5.11–5.12 over training)."""
+        total, z = self._eval_episodes(agent, key, latents=True)  # z: (T, n, N)
+        return total, effective_rank(jnp.swapaxes(z, 0, 1))
+
+    def _eval_episodes(self, agent: Any, key: jax.Array, latents: bool) -> tuple[jax.Array, jax.Array | None]:
         n, env = self.config.eval_episodes, self.eval_env
         k_reset, k_act = jax.random.split(key)
         state = jax.vmap(env.reset)(jax.random.split(k_reset, n))
@@ -162,12 +172,22 @@ class TrainingLoop:
             state, carry, total = loop_carry
             act = jax.vmap(lambda c, o, dt, kk, f: self.agent.act(agent, c, o, dt, kk, explore=False, first_step=f))
             action, carry = act(carry, state.obs, state.dt, jax.random.split(k, n), state.t == 0)
+            z = acting_latent(self.agent, agent, carry, state.obs) if latents else None
             state = jax.vmap(env.step)(state, action)
-            return (state, carry, total + state.reward), None
+            return (state, carry, total + state.reward), z
 
         keys = jax.random.split(k_act, env.episode_length)
-        (_, _, total), _ = jax.lax.scan(body, (state, self.initial_carries(n), jnp.zeros((n,))), keys)
-        return total
+        (_, _, total), z = jax.lax.scan(body, (state, self.initial_carries(n), jnp.zeros((n,))), keys)
+        return total, z
+
+
+def effective_rank(z: jax.Array) -> jax.Array:
+    """Effective rank (Roy & Vetterli 2007) of matrices z (..., T, N) -> (...): exp of the entropy of the
+    normalised singular values, as :func:`lnnmpc.analysis.metrics.effective_rank` (float64 NumPy) computes it,
+    here in the program's precision on the device."""
+    sigma = jnp.linalg.svd(z, compute_uv=False)
+    p = sigma / jnp.maximum(sigma.sum(axis=-1, keepdims=True), jnp.finfo(sigma.dtype).tiny)
+    return jnp.exp(-jnp.sum(jnp.where(p > 0, p * jnp.log(jnp.where(p > 0, p, 1.0)), 0.0), axis=-1))
 
 
 def _where(mask: jax.Array, on_true: Any, on_false: Any) -> Any:

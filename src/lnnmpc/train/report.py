@@ -82,15 +82,17 @@ def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str) 
 TRAINING_LOG_SCALE = ("grad_norm", "prediction_loss", "consistency_loss")  # spans decades: log y axis
 
 
-def training_panels(rows: list[dict]) -> dict[str, dict[int, tuple[np.ndarray, np.ndarray]]]:
-    """train.csv rows -> {metric: {seed: (env_steps, values)}} for every logged metric, in column order.
+Series = dict[int, tuple[np.ndarray, np.ndarray]]  # seed -> (env_steps, values)
+
+
+def training_panels(rows: list[dict], eval_rows: list[dict] = ()) -> dict[str, Series]:
+    """train.csv rows -> {metric: {seed: (env_steps, values)}} for every logged metric, in column order, then
+    ``effective_rank (eval)`` from eval.csv rows: each evaluation's mean over episodes, per seed.
 
     Blank cells (the seed phase logs returns but no losses) and non-numeric ones are left out; a metric with no
     value at all is dropped."""
-    if not rows:
-        return {}
     panels = {}
-    for name in (k for k in rows[0] if k not in ("env_step", "seed")):
+    for name in (k for k in (rows[0] if rows else {}) if k not in ("env_step", "seed")):
         per_seed: dict[int, tuple[list, list]] = {}
         for r in rows:
             try:
@@ -104,10 +106,20 @@ def training_panels(rows: list[dict]) -> dict[str, dict[int, tuple[np.ndarray, n
             values.append(value)
         if per_seed:
             panels[name] = {s: (np.asarray(a), np.asarray(b)) for s, (a, b) in sorted(per_seed.items())}
+    ranks: dict[tuple[int, int], list[float]] = {}
+    for r in eval_rows:
+        if r.get("effective_rank") not in (None, ""):
+            ranks.setdefault((int(r["seed"]), int(r["env_step"])), []).append(float(r["effective_rank"]))
+    if ranks:
+        keys = sorted(ranks)
+        panels["effective_rank (eval)"] = {
+            seed: (np.asarray([step for s, step in keys if s == seed]),
+                   np.asarray([np.mean(ranks[(s, step)]) for s, step in keys if s == seed]))
+            for seed in sorted({s for s, _ in keys})}
     return panels
 
 
-def plot_training(run: str, rows: list[dict], title: str) -> list[str]:
+def plot_training(run: str, rows: list[dict], title: str, eval_rows: list[dict] = ()) -> list[str]:
     """Writes training.png: one panel per train.csv metric (episode return, losses, gradient norm, Q scale,
     entropy, the stochastic variants' σ and NLL...) against environment steps, a line per seed; returns the
     metric names drawn."""
@@ -116,7 +128,7 @@ def plot_training(run: str, rows: list[dict], title: str) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    panels = training_panels(rows)
+    panels = training_panels(rows, eval_rows)
     if not panels:
         return []
     cols = 4
@@ -185,7 +197,8 @@ def write_reports(run: str, extra: dict | None = None) -> None:
     files."""
     config = runfolder.read_config(run)
     c = config["config"]
-    table = eval_table(runfolder.read_csv(os.path.join(run, "eval.csv")))
+    eval_rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
+    table = eval_table(eval_rows)
     refs = references(c["task"], c["agent"], c["eval_obs"])
     try:
         import matplotlib  # noqa: F401
@@ -194,7 +207,8 @@ def write_reports(run: str, extra: dict | None = None) -> None:
     else:
         if table:
             plot_curve(run, table, refs, f"{c['task']} · {c['agent']}")
-        plot_training(run, runfolder.read_csv(os.path.join(run, "train.csv")), f"{c['task']} · {c['agent']}")
+        plot_training(run, runfolder.read_csv(os.path.join(run, "train.csv")), f"{c['task']} · {c['agent']}",
+                      eval_rows)
     with open(os.path.join(run, "summary.md"), "w") as f:
         f.write(summary_text(run, config, table, refs, extra or {}))
 
@@ -220,6 +234,9 @@ class ScalarLogger:
             returns = [r["return"] for r in rows]
             self.writer.add_scalar("eval/return_mean", float(np.mean(returns)), rows[0]["env_step"])
             self.writer.add_scalar("eval/return_std", float(np.std(returns)), rows[0]["env_step"])
+            if "effective_rank" in rows[0]:
+                self.writer.add_scalar("eval/effective_rank_mean", float(np.mean([r["effective_rank"] for r in rows])),
+                                       rows[0]["env_step"])
 
     def close(self) -> None:
         self.writer.close()
@@ -254,8 +271,10 @@ class WandbLogger:
     def eval_rows(self, rows: list[dict]) -> None:
         if rows:
             returns = [r["return"] for r in rows]
+            ranks = {"eval/effective_rank_mean": float(np.mean([r["effective_rank"] for r in rows]))} \
+                if "effective_rank" in rows[0] else {}
             self.run.log({"env_step": rows[0]["env_step"], "eval/return_mean": float(np.mean(returns)),
-                          "eval/return_std": float(np.std(returns))})
+                          "eval/return_std": float(np.std(returns)), **ranks})
 
     def close(self) -> None:
         self.run.finish()

@@ -192,7 +192,7 @@ class _Run:
         self.placement = SeedPlacement(setup.num_devices)
         compile_ = self.placement.compile
         self.init = compile_(self.loop.init)
-        self.evaluate = compile_(self.loop.evaluate)
+        self.evaluate = compile_(self.loop.evaluate_with_rank)
         self.finite = compile_(_all_finite)
         self._chunk_fns = {}
         self.counters = {"env_steps": 0, "next_eval": self.config.eval_every, "last_eval": -1,
@@ -344,8 +344,9 @@ class _Run:
         eval_key, key = jax.random.split(jax.random.wrap_key_data(jnp.asarray(n["eval_key"], jnp.uint32)))
         n["eval_key"], n["last_eval"] = _key_list(eval_key), n["env_steps"]
         keys = self.placement.put(jax.random.split(key, self.config.seeds))
-        returns = np.asarray(self.evaluate(self.ts.agent, keys))  # (seeds, episodes)
-        rows = [{"env_step": n["env_steps"], "seed": s, "episode": e, "return": float(returns[s, e])}
+        returns, ranks = (np.asarray(x) for x in self.evaluate(self.ts.agent, keys))  # (seeds, episodes) each
+        rows = [{"env_step": n["env_steps"], "seed": s, "episode": e, "return": float(returns[s, e]),
+                 "effective_rank": float(ranks[s, e])}
                 for s in range(returns.shape[0]) for e in range(returns.shape[1])]
         runfolder.append_csv(os.path.join(self.run, "eval.csv"), rows)
         self.progress.last_eval = float(returns.mean())
