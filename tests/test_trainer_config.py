@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 
+import numpy as np
 import pytest
 
 from lnnmpc.train import runfolder
@@ -71,6 +72,22 @@ def test_devices_for_seeds():
         device_count_for(4, 2, 4)
     with pytest.raises(ConfigError, match="seeds=3 cannot be split evenly over devices=2"):
         device_count_for(3, 2, 2)
+
+
+def test_programs_compiled_ahead_in_parallel_run_and_fall_back_on_other_arguments(capsys):
+    import jax
+    import jax.numpy as jnp
+
+    from lnnmpc.train.sharding import compile_ahead
+
+    double, total = jax.jit(lambda x: 2 * x), jax.jit(lambda x, y: (x * y).sum())
+    first, second = compile_ahead([(double, (jnp.ones(3),)), (total, (jnp.ones(3), jnp.ones(3)))])
+    assert first.compiled is not None and second.compiled is not None
+    np.testing.assert_array_equal(first(jnp.arange(3.0)), [0.0, 2.0, 4.0])
+    assert float(second(jnp.arange(3.0), jnp.full(3, 2.0))) == 6.0
+    assert first.compiled is not None  # the ahead-of-time executable ran
+    np.testing.assert_array_equal(first(jnp.arange(4.0)), [0.0, 2.0, 4.0, 6.0])  # another shape: jit compiles it
+    assert first.compiled is None and "refused its arguments" in capsys.readouterr().err
 
 
 def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):

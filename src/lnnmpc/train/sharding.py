@@ -14,7 +14,9 @@ same programs (and hit the same persistent-cache entries).
 from __future__ import annotations
 
 import functools
+import sys
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import numpy as np
@@ -60,3 +62,38 @@ class SeedPlacement:
 
 def _call_with_static(fn, static, *args):
     return fn(*args, *static)
+
+
+class AheadOfTime:
+    """A jitted function with an executable compiled ahead of time for one set of example arguments.
+
+    Calls run the executable; arguments it was not compiled for (another shape, dtype or placement: a
+    :class:`jax.stages.Compiled` refuses them with TypeError/ValueError) fall back to the jitted function for
+    good, which compiles as usual. Both run the same program, so results do not depend on which one ran."""
+
+    def __init__(self, jitted: Callable, compiled=None):
+        self.jitted, self.compiled = jitted, compiled
+
+    def __call__(self, *args):
+        if self.compiled is not None:
+            try:
+                return self.compiled(*args)
+            except (TypeError, ValueError) as error:
+                sys.stderr.write(f"\nahead-of-time program refused its arguments ({str(error)[:200]}); "
+                                 "compiling it again\n")
+                self.compiled = None
+        return self.jitted(*args)
+
+
+def compile_ahead(jobs: list[tuple[Callable, tuple]], threads: int | None = None) -> list[AheadOfTime]:
+    """Compiles every ``(jitted, example_args)`` job at once, in threads (XLA compiles without the GIL, so
+    several programs build in parallel on a machine with several cores: the trainer's seed phase, update burst,
+    training chunk and evaluation programs then cost about the slowest one's time instead of the sum)."""
+    def build(job):
+        jitted, args = job
+        return AheadOfTime(jitted, jitted.lower(*args).compile())
+
+    if len(jobs) <= 1 or threads == 1:
+        return [build(job) for job in jobs]
+    with ThreadPoolExecutor(max_workers=threads or len(jobs)) as pool:
+        return list(pool.map(build, jobs))

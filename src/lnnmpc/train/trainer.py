@@ -39,7 +39,7 @@ from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkp
 from lnnmpc.train.compat import agent_config_json, check_agent_config, check_compatible, check_layout, state_signature
 from lnnmpc.train.config import ConfigError, TrainConfig
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
-from lnnmpc.train.sharding import SeedPlacement, device_count_for
+from lnnmpc.train.sharding import SeedPlacement, compile_ahead, device_count_for
 
 MAX_CHUNK = 1000  # iterations per compiled training chunk
 TIMING_FILE = "timing.csv"  # wall seconds of each phase (kept apart from train.csv, which is deterministic)
@@ -203,6 +203,20 @@ class _Run:
             [report.WandbLogger(self.run, self.config.wandb, self.config.to_dict())]
             if self.config.wandb else [])
 
+    def _compile_ahead(self) -> None:
+        """Compiles the programs the run will call (seed phase and update burst unless done, the training chunk,
+        the evaluation) in parallel before the first one runs."""
+        c, names = self.config, []
+        seed_iterations = math.ceil(c.seed_steps / self.setup.per_iteration)
+        if not self.counters["seeded"] and seed_iterations:
+            names += [("seed_chunk", seed_iterations), ("update_burst", seed_iterations * c.envs)]
+        names.append(("train_chunk", self.setup.chunk))
+        keys = self.placement.put(jax.random.split(jax.random.key(0), c.seeds))
+        jobs = [(self.placement.compile(getattr(self.loop, name), length), (self.ts,)) for name, length in names]
+        jobs.append((self.placement.compile(self.loop.evaluate_with_rank), (self.ts.agent, keys)))
+        *chunks, self.evaluate = compile_ahead(jobs)
+        self._chunk_fns.update(dict(zip(names, chunks, strict=True)))
+
     def chunk_fn(self, name: str, length: int):
         """Compiled ``loop.<name>(ts, length)`` over seeds (cached per length)."""
         if (name, length) not in self._chunk_fns:
@@ -225,6 +239,8 @@ class _Run:
         for name in ("train.csv", "eval.csv", TIMING_FILE):  # rows after the checkpoint (or all, starting afresh) go
             runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if
                                    self.setup.resume_step is not None else -1)
+        with self._timed("compile"):
+            self._compile_ahead()
         start = time.perf_counter()
         with _StopRequest() as stop:
             try:
