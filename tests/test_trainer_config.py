@@ -44,6 +44,7 @@ def test_parse_obs_and_overrides():
     ({"overrides": ["horizon"]}, "bad --set 'horizon'; use KEY=VALUE"),
     ({"name": "a/b"}, "run name 'a/b' must not contain '/'"),
     ({"wandb": "my project"}, "wandb project 'my project' must be letters, digits, '.', '_' or '-'"),
+    ({"compile_ahead": "yes"}, "compile_ahead='yes'; allowed: auto, on, off"),
 ])
 def test_bad_values_are_named_with_the_allowed_ones(values, message):
     with pytest.raises(ConfigError) as error:

@@ -66,7 +66,7 @@ def _rows(path) -> list[dict]:
 def reference(tmp_path_factory, cache):
     """An uninterrupted run of CONFIG."""
     run = tmp_path_factory.mktemp("runs") / "reference"
-    result = _run([*CONFIG, "--out", str(run)], cache)
+    result = _run([*CONFIG, "--out", str(run), "--compile-ahead", "on"], cache)  # resumed runs: auto
     assert result.returncode == 0, result.stderr[-3000:]
     return run
 

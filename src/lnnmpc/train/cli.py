@@ -57,6 +57,8 @@ def _train_parser(sub) -> None:
     p.add_argument("--wandb", metavar="PROJECT",
                    help="also log to this Weights & Biases project (WANDB_MODE=offline: no network)")
     p.add_argument("--compile-cache", help='XLA compilation cache folder ("" turns it off)')
+    p.add_argument("--compile-ahead", choices=("auto", "on", "off"),
+                   help="compile the run's programs in parallel before training (default auto: with >= 4 cores)")
 
 
 def _eval_parser(sub) -> None:

@@ -29,7 +29,8 @@ TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 # ``overrides`` may change as long as the agent's resolved hyperparameters stay those of the checkpoint (checked
 # by lnnmpc.train.compat.check_agent_config), e.g. to pin a default that changed in the code since the run.
 RESUMABLE_CHANGES = ("steps", "name", "runs_dir", "checkpoint_every", "keep_checkpoints", "devices",
-                     "tensorboard", "wandb", "compile_cache", "overrides")
+                     "tensorboard", "wandb", "compile_cache", "compile_ahead", "overrides")
+COMPILE_AHEAD = ("auto", "on", "off")
 
 
 BACKENDS = ("mjx", "dm_control")  # evaluation backends: MJX on the device, dm_control's simulator on the CPU
@@ -138,6 +139,9 @@ class TrainConfig:
       wandb: a Weights & Biases project to log to ("" = off; needs the ``wandb`` package; ``WANDB_MODE=offline``
         logs without network).
       compile_cache: folder for XLA's persistent compilation cache ("" turns it off).
+      compile_ahead: compile the run's programs in parallel threads before the first runs ("on"), or each
+        when first called ("off"); "auto": on with at least 4 CPU cores (with fewer, threads gain little and a
+        run stopped early pays for programs it never called).
     """
 
     task: str
@@ -166,6 +170,7 @@ class TrainConfig:
     tensorboard: bool = False
     wandb: str = ""
     compile_cache: str = dataclasses.field(default_factory=default_compile_cache)
+    compile_ahead: str = "auto"
 
     def __post_init__(self):
         from lnnmpc.agents.registry import AGENTS
@@ -194,6 +199,8 @@ class TrainConfig:
         if not isinstance(self.wandb, str) or not re.fullmatch(r"[A-Za-z0-9._-]{0,128}", self.wandb):
             raise ConfigError(f"wandb project {self.wandb!r} must be letters, digits, '.', '_' or '-' (at most 128; "
                               "empty turns W&B logging off)")
+        if self.compile_ahead not in COMPILE_AHEAD:
+            raise ConfigError(f"compile_ahead={self.compile_ahead!r}; allowed: {', '.join(COMPILE_AHEAD)}")
         if "/" in self.name or self.name.startswith("."):
             raise ConfigError(f"run name {self.name!r} must not contain '/' or start with '.'")
         obs = parse_obs(self.obs)

@@ -239,8 +239,9 @@ class _Run:
         for name in ("train.csv", "eval.csv", TIMING_FILE):  # rows after the checkpoint (or all, starting afresh) go
             runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if
                                    self.setup.resume_step is not None else -1)
-        with self._timed("compile"):
-            self._compile_ahead()
+        if c.compile_ahead == "on" or (c.compile_ahead == "auto" and (os.cpu_count() or 1) >= 4):
+            with self._timed("compile"):
+                self._compile_ahead()
         start = time.perf_counter()
         with _StopRequest() as stop:
             try:
