@@ -183,14 +183,12 @@ def effective_ranks(run: str, steps: list[int], episodes: int, seed_index: int =
 def ranks_from_eval(run: str, seed_index: int, latent_dim: int) -> list[dict]:
     """:func:`effective_ranks`' rows from the trainer's evaluations (eval.csv's ``effective_rank`` of seed
     ``seed_index``, mean ± std over the episodes of each evaluation); [] when the run did not log it."""
-    rows = [r for r in runfolder.read_csv(os.path.join(run, "eval.csv"))
-            if r.get("effective_rank") not in (None, "") and int(r["seed"]) == seed_index]
-    out = []
-    for step in sorted({int(r["env_step"]) for r in rows}):
-        ranks = np.array([float(r["effective_rank"]) for r in rows if int(r["env_step"]) == step])
-        out.append({"env_step": step, "effective_rank": float(ranks.mean()), "std": float(ranks.std()),
-                    "episodes": len(ranks), "latent_dim": latent_dim})
-    return out
+    from lnnmpc.train.report import eval_ranks
+
+    ranks = eval_ranks(runfolder.read_csv(os.path.join(run, "eval.csv")))
+    return [{"env_step": step, "effective_rank": float(np.mean(values)), "std": float(np.std(values)),
+             "episodes": len(values), "latent_dim": latent_dim}
+            for (seed, step), values in sorted(ranks.items()) if seed == seed_index]
 
 
 def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out: str | None = None,

@@ -85,6 +85,15 @@ TRAINING_LOG_SCALE = ("grad_norm", "prediction_loss", "consistency_loss")  # spa
 Series = dict[int, tuple[np.ndarray, np.ndarray]]  # seed -> (env_steps, values)
 
 
+def eval_ranks(eval_rows: list[dict]) -> dict[tuple[int, int], list[float]]:
+    """{(seed, env_step): the episodes' effective ranks} from eval.csv rows (runs that logged them)."""
+    ranks: dict[tuple[int, int], list[float]] = {}
+    for r in eval_rows:
+        if r.get("effective_rank") not in (None, ""):
+            ranks.setdefault((int(r["seed"]), int(r["env_step"])), []).append(float(r["effective_rank"]))
+    return ranks
+
+
 def training_panels(rows: list[dict], eval_rows: list[dict] = ()) -> dict[str, Series]:
     """train.csv rows -> {metric: {seed: (env_steps, values)}} for every logged metric, in column order, then
     ``effective_rank (eval)`` from eval.csv rows: each evaluation's mean over episodes, per seed.
@@ -106,10 +115,7 @@ def training_panels(rows: list[dict], eval_rows: list[dict] = ()) -> dict[str, S
             values.append(value)
         if per_seed:
             panels[name] = {s: (np.asarray(a), np.asarray(b)) for s, (a, b) in sorted(per_seed.items())}
-    ranks: dict[tuple[int, int], list[float]] = {}
-    for r in eval_rows:
-        if r.get("effective_rank") not in (None, ""):
-            ranks.setdefault((int(r["seed"]), int(r["env_step"])), []).append(float(r["effective_rank"]))
+    ranks = eval_ranks(eval_rows)
     if ranks:
         keys = sorted(ranks)
         panels["effective_rank (eval)"] = {

@@ -85,7 +85,7 @@ class AheadOfTime:
         return self.jitted(*args)
 
 
-def compile_ahead(jobs: list[tuple[Callable, tuple]], threads: int | None = None) -> list[AheadOfTime]:
+def compile_ahead(jobs: list[tuple[Callable, tuple]]) -> list[AheadOfTime]:
     """Compiles every ``(jitted, example_args)`` job at once, in threads (XLA compiles without the GIL, so
     several programs build in parallel on a machine with several cores: the trainer's seed phase, update burst,
     training chunk and evaluation programs then cost about the slowest one's time instead of the sum)."""
@@ -93,7 +93,5 @@ def compile_ahead(jobs: list[tuple[Callable, tuple]], threads: int | None = None
         jitted, args = job
         return AheadOfTime(jitted, jitted.lower(*args).compile())
 
-    if len(jobs) <= 1 or threads == 1:
-        return [build(job) for job in jobs]
-    with ThreadPoolExecutor(max_workers=threads or len(jobs)) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, len(jobs))) as pool:
         return list(pool.map(build, jobs))

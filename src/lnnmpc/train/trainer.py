@@ -207,20 +207,28 @@ class _Run:
         """Compiles the programs the run will call (seed phase and update burst unless done, the training chunk,
         the evaluation) in parallel before the first one runs."""
         c, names = self.config, []
-        seed_iterations = math.ceil(c.seed_steps / self.setup.per_iteration)
-        if not self.counters["seeded"] and seed_iterations:
-            names += [("seed_chunk", seed_iterations), ("update_burst", seed_iterations * c.envs)]
+        if not self.counters["seeded"] and self.seed_iterations:
+            names += [("seed_chunk", self.seed_iterations), ("update_burst", self.seed_iterations * c.envs)]
         names.append(("train_chunk", self.setup.chunk))
         keys = self.placement.put(jax.random.split(jax.random.key(0), c.seeds))
-        jobs = [(self.placement.compile(getattr(self.loop, name), length), (self.ts,)) for name, length in names]
-        jobs.append((self.placement.compile(self.loop.evaluate_with_rank), (self.ts.agent, keys)))
+        jobs = [(self._chunk_program(name, length), (self.ts,)) for name, length in names]
+        jobs.append((self.evaluate, (self.ts.agent, keys)))
         *chunks, self.evaluate = compile_ahead(jobs)
         self._chunk_fns.update(dict(zip(names, chunks, strict=True)))
 
+    @property
+    def seed_iterations(self) -> int:
+        """Loop iterations of the random seed phase."""
+        return math.ceil(self.config.seed_steps / self.setup.per_iteration)
+
+    def _chunk_program(self, name: str, length: int):
+        """``loop.<name>(ts, length)`` over seeds, jitted (compiled on the first call)."""
+        return self.placement.compile(getattr(self.loop, name), length)
+
     def chunk_fn(self, name: str, length: int):
-        """Compiled ``loop.<name>(ts, length)`` over seeds (cached per length)."""
+        """Compiled ``loop.<name>(ts, length)`` over seeds (cached per length; compiled ahead or on first call)."""
         if (name, length) not in self._chunk_fns:
-            self._chunk_fns[name, length] = self.placement.compile(getattr(self.loop, name), length)
+            self._chunk_fns[name, length] = self._chunk_program(name, length)
         return self._chunk_fns[name, length]
 
     # ------------------------------------------------------------------------------------ lifecycle
@@ -257,7 +265,7 @@ class _Run:
     def _schedule(self, stop: _StopRequest) -> None:
         c, n = self.config, self.counters
         if not n["seeded"]:
-            seed_iterations = math.ceil(c.seed_steps / self.setup.per_iteration)
+            seed_iterations = self.seed_iterations
             if seed_iterations:
                 with self._timed("seed_phase") as timed:
                     ts, out = self.chunk_fn("seed_chunk", seed_iterations)(self.ts)
