@@ -11,8 +11,10 @@
 # A run stopped by its timeout saves a checkpoint after its running chunk (SIGTERM), so what it measured is kept.
 # Each report prints every run's progress line and packs the run folders without checkpoints, the logs and
 # nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
-# The GPU is shared through CUDA MPS when the machine has it (MPS=0 turns that off); each process takes
-# MEM_FRACTION (default 0.9 / number of jobs) of the GPU memory.
+# On a machine of several GPUs the jobs are dealt out round robin, one GPU each (CUDA_VISIBLE_DEVICES; job i on
+# GPU i mod count): independent runs gain the most from more GPUs, since one run's step is latency-bound. The
+# jobs on one GPU share it through CUDA MPS when the machine has it (MPS=0 turns that off); each process takes
+# MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
 set -u
 BATCH=runs/batch
 action=${1:?start or wait}
@@ -28,7 +30,7 @@ report_after() {
     done
     grep -l -E "Traceback|Error" "$BATCH"/*.log 2>/dev/null | while read -r bad; do
         echo "--- $bad"; tail -15 "$bad"; done
-    nvidia-smi --query-gpu=utilization.gpu,memory.used,memory.total --format=csv,noheader 2>/dev/null \
+    nvidia-smi --query-gpu=index,utilization.gpu,memory.used,memory.total --format=csv,noheader 2>/dev/null \
         | tee "$BATCH/nvidia-smi.txt"
     if [ -n "${OUT:-}" ]; then
         tar czf "$OUT/results.tar.gz" --exclude=checkpoints -C "$BATCH" .
@@ -43,7 +45,11 @@ start)
     mkdir -p "$BATCH" runs/jaxcache
     date +%s >"$BATCH/started"
     count=$(grep -c -v -E '^\s*(#|$)' "$jobs")
-    export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(python3 -c "print(round(0.9 / $count, 3))")}
+    gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
+    [ "${gpus:-0}" -ge 1 ] || gpus=1
+    per_gpu=$(((count + gpus - 1) / gpus))
+    export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(python3 -c "print(round(0.9 / $per_gpu, 3))")}
+    echo "$count jobs on $gpus GPU(s), up to $per_gpu per GPU" | tee "$BATCH/gpus.txt"
     if [ "${MPS:-1}" = 1 ] && command -v nvidia-cuda-mps-control >/dev/null; then
         nvidia-cuda-mps-control -d && sleep 1
         if python3 -c "import jax, jax.numpy as jnp; assert float(jnp.ones(4).sum()) == 4.0" 2>/dev/null; then
@@ -55,11 +61,14 @@ start)
     else
         echo "CUDA MPS not used" | tee "$BATCH/mps.txt"
     fi
+    index=0
     grep -v -E '^\s*(#|$)' "$jobs" | while read -r name args; do
+        gpu=$((index % gpus))
+        index=$((index + 1))
         # shellcheck disable=SC2086  # the arguments are meant to split
-        setsid nohup timeout -s TERM "$seconds" python3 -m lnnmpc.train.cli train $args --out "$BATCH/$name" \
-            --compile-cache runs/jaxcache >"$BATCH/$name.log" 2>&1 </dev/null &
-        echo "$name: $args" | tee -a "$BATCH/commands.txt"
+        CUDA_VISIBLE_DEVICES=$gpu setsid nohup timeout -s TERM "$seconds" python3 -m lnnmpc.train.cli train $args \
+            --out "$BATCH/$name" --compile-cache runs/jaxcache >"$BATCH/$name.log" 2>&1 </dev/null &
+        echo "$name (GPU $gpu): $args" | tee -a "$BATCH/commands.txt"
     done
     report_after "$report"
     ;;
