@@ -45,6 +45,16 @@ def time_call(fn, *args, repeats: int = 5) -> dict:
     return {"median_s": statistics.median(times), "min_s": min(times), "times_s": times, "first_call_s": first}
 
 
+def compiled_gflop(jitted, *args) -> float | None:
+    """GFLOP of one call of ``jitted`` by XLA's cost analysis of the compiled program (None where the backend
+    gives none). Set against the call's time it says how far from compute-bound the call is."""
+    cost = jitted.lower(*args).compile().cost_analysis()
+    if isinstance(cost, (list, tuple)):  # older jax: one dict per device
+        cost = cost[0] if cost else None
+    flops = (cost or {}).get("flops")
+    return None if flops is None or flops < 0 else flops / 1e9
+
+
 def peak_memory_bytes() -> int | None:
     stats = jax.devices()[0].memory_stats() or {}
     return stats.get("peak_bytes_in_use")

@@ -76,11 +76,13 @@ def main() -> None:
                 )
         elif payload.get("benchmark") == "train_throughput":
             device = payload["env"]["device"]
+            precision = payload.get("args", {}).get("matmul_precision", "default")
+            suffix = "" if precision == "default" else f" ({precision} products)"
             for r in payload["results"]:
                 chunk = (f"{r['ms_per_iteration']:.2f} | {r['chunk_env_steps_per_s']:,.0f}" if "ms_per_iteration" in r
                          else "— | —")
                 train_rows.append(
-                    f"| {r['task']} | {r['agent']} | {r['seeds']} | {r['envs']} | {r['act_ms']:.2f} | "
+                    f"| {r['task']} | {r['agent']}{suffix} | {r['seeds']} | {r['envs']} | {r['act_ms']:.2f} | "
                     f"{r['env_ms']:.2f} | {r['update_ms']:.2f} | {chunk} | {device} | {name} |")
         elif "results" in payload and payload["results"] and "forward_backward_ms_median" in payload["results"][0]:
             for r in payload["results"]:

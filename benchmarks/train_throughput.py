@@ -3,13 +3,15 @@ and end-to-end chunks versus seeds.
 
 For each task and number of seeds (vmap), times with compile excluded (medians over ``--repeats``):
 * ``act_ms``: one MPPI act step for every seed (vmap over seeds, one environment each);
-* ``update_ms``: one update (batch 256; the agent's training window) for every seed;
+* ``update_ms``: one update (batch 256; the agent's training window) for every seed; ``update_gflop`` its
+  arithmetic by XLA's cost analysis and ``update_tflop_per_s`` the rate achieved;
 * ``chunk_env_steps_per_s``: a training chunk of ``--chunk`` iterations (act -> env step -> insert -> update),
   environment steps per second summed over seeds.
 Writes JSON (device, versions, config, results), rewritten after each measurement.
 
     python benchmarks/train_throughput.py --tasks walker-run,cartpole-swingup --seeds 1,4,8
     python benchmarks/train_throughput.py --small --tasks cartpole-balance --seeds 1,2 --chunk 20   # CPU check
+    python benchmarks/train_throughput.py --tasks walker-run --seeds 4 --skip-chunk --matmul-precision bfloat16
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from common import default_out, environment_info, time_call, write_json  # noqa: E402
+from common import compiled_gflop, default_out, environment_info, time_call, write_json  # noqa: E402
 
 from lnnmpc import envs as envs_lib  # noqa: E402
 from lnnmpc.agents.registry import make_agent  # noqa: E402
@@ -61,8 +63,13 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     actions = jnp.zeros((seeds, envs, act_dim))
     record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
     update = jax.jit(jax.vmap(loop._update))
-    record["update_ms"] = 1e3 * time_call(update, ts, jax.random.split(jax.random.key(2), seeds),
-                                          repeats=args.repeats)["median_s"]
+    update_keys = jax.random.split(jax.random.key(2), seeds)
+    record["update_ms"] = 1e3 * time_call(update, ts, update_keys, repeats=args.repeats)["median_s"]
+    # XLA's count of the update's arithmetic, and the rate it ran at: far below the device's peak means the
+    # update is latency-bound (many small kernels), not compute-bound.
+    record["update_gflop"] = compiled_gflop(update, ts, update_keys)
+    if record["update_gflop"] is not None:
+        record["update_tflop_per_s"] = record["update_gflop"] / record["update_ms"]
     if args.skip_chunk:
         record["parts_ms"] = {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]}
         return record
@@ -92,8 +99,12 @@ def main(argv=None):
     parser.add_argument("--skip-chunk", action="store_true",
                         help="time act, env step and update only (no end-to-end chunk: saves its compilation)")
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
+    parser.add_argument("--matmul-precision", choices=("default", "tensorfloat32", "bfloat16", "highest"),
+                        default="default", help="jax_default_matmul_precision for every program timed")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
+    if args.matmul_precision != "default":
+        jax.config.update("jax_default_matmul_precision", args.matmul_precision)
     out = args.out or default_out("train_throughput")
     payload = {"benchmark": "train_throughput", "env": environment_info(), "args": vars(args), "results": []}
     for task in args.tasks.split(","):
@@ -104,7 +115,8 @@ def main(argv=None):
             chunk = ("" if args.skip_chunk else f"  chunk {record['ms_per_iteration']:8.2f} ms/iteration"
                      f"  {record['chunk_env_steps_per_s']:10.0f} env steps/s")
             print(f"{task:18s} {args.agent:12s} seeds={seeds:2d} envs={envs:2d}  env {record['env_ms']:6.2f} ms"
-                  f"  act {record['act_ms']:8.2f} ms  update {record['update_ms']:8.2f} ms{chunk}", flush=True)
+                  f"  act {record['act_ms']:8.2f} ms  update {record['update_ms']:8.2f} ms"
+                  f" ({record.get('update_tflop_per_s') or 0:.1f} TFLOP/s){chunk}", flush=True)
     print(f"wrote {out}")
 
 
