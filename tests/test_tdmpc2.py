@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -9,7 +11,7 @@ import pytest
 
 from lnnmpc.agents import math as M
 from lnnmpc.agents.mppi import MPPIConfig
-from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config
+from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config, clip_jointly
 from lnnmpc.agents.tdmpc2_model import WorldModelConfig
 
 H, B, OBS, ACT = 3, 16, 5, 2
@@ -138,3 +140,27 @@ def test_config_validation():
         TDMPC2Config(model=model, horizon=0)
     with pytest.raises(ValueError, match=r"gamma must be in \(0, 1\], got 1.5"):
         TDMPC2Config(model=model, gamma=1.5)
+
+
+def test_world_model_gradient_is_clipped_by_one_global_norm(agent):
+    """TD-MPC2 clips all model parameters' gradients together: against float64 numpy on a toy tree, and in the
+    update, where Adam's first moment after one step is 0.1 x the gradient the optimiser received."""
+    rng = np.random.default_rng(0)
+    grads = {k: {"w": rng.normal(size=(3, 4)).astype(np.float32)} for k in ("encoder", "dynamics", "policy_head")}
+    clipped = clip_jointly(grads, 1.5, frozen=("policy_head",))
+    norm = np.sqrt(sum((grads[k]["w"].astype(np.float64) ** 2).sum() for k in ("encoder", "dynamics")))
+    for k in ("encoder", "dynamics"):
+        np.testing.assert_allclose(np.asarray(clipped[k]["w"]), grads[k]["w"] * 1.5 / norm, rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(clipped["policy_head"]["w"]), grads["policy_head"]["w"])
+    small = clip_jointly(grads, 1e3, frozen=("policy_head",))
+    np.testing.assert_allclose(np.asarray(small["encoder"]["w"]), grads["encoder"]["w"], rtol=1e-6)
+
+    def first_moment_norm(joint: bool) -> float:
+        tight = type(agent)(dataclasses.replace(agent.config, grad_clip_norm=1e-6, joint_grad_clip=joint))
+        state, _ = jax.jit(tight.update)(tight.init(jax.random.key(5)), _batch(5), jax.random.key(6))
+        mus = [x for path, x in jax.tree_util.tree_flatten_with_path(state.model_opt)[0]
+               if "mu" in jax.tree_util.keystr(path) and "policy_head" not in jax.tree_util.keystr(path)]
+        return float(np.sqrt(sum(float(jnp.sum(jnp.square(m))) for m in mus)))
+
+    np.testing.assert_allclose(first_moment_norm(True), 0.1 * 1e-6, rtol=1e-3)  # one norm over both groups
+    np.testing.assert_allclose(first_moment_norm(False), 0.1 * 1e-6 * np.sqrt(2), rtol=1e-3)  # each group's own

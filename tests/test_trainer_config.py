@@ -130,8 +130,9 @@ def test_resuming_with_changed_agent_hyperparameters_is_refused(tmp_path):
 
 
 def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_path):
-    """A checkpoint from before nll_beta existed and with the old free-bits default: a det variant resumes (it uses
-    neither); an OP-stoch run is refused with the exact --set flags, and resumes once they are given."""
+    """A checkpoint from before nll_beta and joint_grad_clip existed and with the old free-bits default: a det
+    variant resumes with the old per-group clipping (it uses neither NLL field); an OP-stoch run is refused with
+    the exact --set flags, and resumes once they are given."""
     from lnnmpc.agents.registry import make_agent
     from lnnmpc.train.compat import agent_config_json, check_agent_config
 
@@ -139,22 +140,25 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
 
     def saved_like(agent_config):
         old = agent_config_json(agent_config)
-        del old["nll_beta"]  # the field did not exist
+        del old["nll_beta"], old["joint_grad_clip"]  # the fields did not exist
         old["free_bits"] = -1.0
         runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": old})
 
     det = make_agent("cfc-op-det", 5, 1).config
     saved_like(det)
-    check_agent_config(run, det)
-    stoch = make_agent("cfc-op-stoch", 5, 1).config
+    with pytest.raises(ConfigError, match="Restore them with --set joint_grad_clip=False or start a new run"):
+        check_agent_config(run, det)
+    check_agent_config(run, make_agent("cfc-op-det", 5, 1, overrides={"joint_grad_clip": "false"}).config)
+    stoch = make_agent("cfc-op-stoch", 5, 1, overrides={"joint_grad_clip": False}).config
     saved_like(stoch)
     with pytest.raises(ConfigError) as error:
         check_agent_config(run, stoch)
     message = str(error.value)
     assert "free_bits: checkpoint has -1.0, now -2.0" in message and "nll_beta: checkpoint has 0.0, now 1.0" in message
     assert "Restore them with --set free_bits=-1.0 --set nll_beta=0.0" in message
-    check_agent_config(run, make_agent("cfc-op-stoch", 5, 1, overrides={"free_bits": "-1.0", "nll_beta": "0.0"}).config)
-    zp = make_agent("cfc-zp-stoch", 5, 1, overrides={"nll_beta": 0}).config
+    check_agent_config(run, make_agent("cfc-op-stoch", 5, 1, overrides={
+        "free_bits": "-1.0", "nll_beta": "0.0", "joint_grad_clip": "false"}).config)
+    zp = make_agent("cfc-zp-stoch", 5, 1, overrides={"nll_beta": 0, "joint_grad_clip": False}).config
     saved_like(zp)
     check_agent_config(run, zp)  # ZP does not use free bits
 

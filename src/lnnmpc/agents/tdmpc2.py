@@ -8,7 +8,7 @@ last record's action and reward are unused), following TD-MPC2:
 * world model: latent rollout ``ẑ_{t+1} = d(ẑ_t, a_t)`` from ``ẑ_0 = enc(o_0)``; consistency MSE to ``z'_t``,
   reward and Q soft cross-entropies on two-hot targets at ``ẑ_0..ẑ_{H-1}``, each step weighted ρ^t and averaged
   over the horizon (Q also over heads); total ``20·consistency + 0.1·reward + 0.1·value``; Adam with the encoder's
-  learning rate × 0.3 and gradient clip 20;
+  learning rate × 0.3 and the gradient clipped at norm 20 over all world-model parameters together;
 * policy: on stop-gradient latents ``ẑ_0..ẑ_H``, ``-(1e-4·entropy + Q/scale)`` with Q the mean of 2 random online
   heads and ``scale`` TD-MPC2's running 5–95 percentile range of Q at t = 0;
 * the target Q network follows the online one with τ = 0.01.
@@ -46,6 +46,9 @@ class TDMPC2Config:
     lr: float = 3e-4
     encoder_lr_scale: float = 0.3
     grad_clip_norm: float = 20.0
+    # True: the world model's gradient (encoder and the rest together) is clipped by its one global norm, as
+    # TD-MPC2 clips all model parameters at once; False: each learning-rate group on its own norm (before 2026-11-23).
+    joint_grad_clip: bool = True
     consistency_coef: float = 20.0
     reward_coef: float = 0.1
     value_coef: float = 0.1
@@ -78,6 +81,14 @@ class AgentState:
 
 def _labels(params, rule):
     return path_aware_map(lambda path, _: rule(path[0]), params)
+
+
+def clip_jointly(grads: dict, max_norm: float, frozen: tuple[str, ...] = ()) -> dict:
+    """Scales every gradient but the ``frozen`` top-level entries by min(1, max_norm / ‖g‖), ‖g‖ the global
+    norm over those same entries (torch's clip_grad_norm_ over a module's parameters)."""
+    norm = optax.tree.norm({k: v for k, v in grads.items() if k not in frozen})
+    factor = jnp.minimum(1.0, max_norm / jnp.maximum(norm, 1e-12))
+    return {k: v if k in frozen else jax.tree.map(lambda g: g * factor, v) for k, v in grads.items()}
 
 
 def make_optimizers(config: TDMPC2Config) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
@@ -180,9 +191,11 @@ class TDMPC2:
         k_model, k_policy = jax.random.split(key)
         grads, (zs, metrics) = jax.grad(self.world_model_loss, has_aux=True)(
             state.params, state.target_q, batch, k_model)
+        metrics["grad_norm"] = optax.tree.norm(grads)
+        if self.config.joint_grad_clip:  # the groups' own clips (make_optimizers) then never bind
+            grads = clip_jointly(grads, self.config.grad_clip_norm, frozen=("policy_head",))
         updates, model_opt = self.model_tx.update(grads, state.model_opt, state.params)
         params = optax.apply_updates(state.params, updates)
-        metrics["grad_norm"] = optax.tree.norm(grads)
         pi_grads, (scale, pi_metrics) = jax.grad(self.policy_loss, has_aux=True)(params, zs, state.scale, k_policy)
         updates, policy_opt = self.policy_tx.update(pi_grads, state.policy_opt, params)
         params = optax.apply_updates(params, updates)
