@@ -72,3 +72,25 @@ def test_config_validation():
         WorldModelConfig(obs_dim=5, action_dim=1, num_q=1)
     with pytest.raises(ValueError, match="obs_dim must be an integer >= 1, got 0"):
         WorldModelConfig(obs_dim=0, action_dim=1)
+
+
+@pytest.mark.parametrize("layer_norm", [True, False])
+def test_simnorm_outputs_follow_a_layer_norm_and_kernels_are_normal_002(layer_norm):
+    """TD-MPC2's encoder and dynamics end Dense -> LayerNorm -> SimNorm: the latent is then unchanged when the
+    last Dense's output is scaled (it is not without the LayerNorm, the layout of older runs). Kernels are
+    N(0, 0.02²) as torch's trunc_normal_(std=0.02) (cut at ±2 absolute) draws them, not cut at ±2σ."""
+    config = WorldModelConfig.from_size(5, 1, 1, enc_dim=64, mlp_dim=64, latent_dim=16, num_q=2,
+                                        simnorm_layer_norm=layer_norm)
+    model, variables = init_world_model(config, jax.random.key(3))
+    obs, action = jax.random.normal(jax.random.key(4), (7, 5)), jnp.ones((7, 1))
+    params = jax.tree_util.tree_map(lambda x: x, variables["params"])
+    for part in ("encoder", "dynamics"):
+        params[part]["Dense_1" if part == "encoder" else "Dense_2"] = jax.tree_util.tree_map(
+            lambda x: 10.0 * x, params[part]["Dense_1" if part == "encoder" else "Dense_2"])
+    z, z_scaled = (model.apply({"params": p}, obs, method="encode") for p in (variables["params"], params))
+    nxt, nxt_scaled = (model.apply({"params": p}, z, action, method="next") for p in (variables["params"], params))
+    same = np.allclose(np.asarray(z), np.asarray(z_scaled), atol=1e-2) and np.allclose(
+        np.asarray(nxt), np.asarray(nxt_scaled), atol=1e-2)
+    assert same == layer_norm  # with it: equal up to the LayerNorm's epsilon (~3e-4); without: ~0.4 apart
+    kernel = np.asarray(variables["params"]["dynamics"]["Dense_1"]["kernel"])  # 64 x 64 draws
+    assert abs(kernel.std() - 0.02) < 0.002 and np.abs(kernel).max() > 2.2 * 0.02

@@ -161,6 +161,15 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
     zp = make_agent("cfc-zp-stoch", 5, 1, overrides={"nll_beta": 0, "joint_grad_clip": False}).config
     saved_like(zp)
     check_agent_config(run, zp)  # ZP does not use free bits
+    # A TD-MPC2 checkpoint from before the SimNorm LayerNorm and the joint clip: its layout and clipping restored.
+    old = agent_config_json(make_agent("tdmpc2", 5, 1).config)
+    del old["joint_grad_clip"], old["model"]["simnorm_layer_norm"]
+    runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": old})
+    with pytest.raises(ConfigError, match="Restore them with --set joint_grad_clip=False --set "
+                                          "model.simnorm_layer_norm=False or start a new run"):
+        check_agent_config(run, make_agent("tdmpc2", 5, 1).config)
+    check_agent_config(run, make_agent("tdmpc2", 5, 1, overrides={
+        "joint_grad_clip": "false", "model.simnorm_layer_norm": "false"}).config)
 
 
 def test_cli_exits_with_status_2_and_the_message(capsys):

@@ -220,7 +220,12 @@ class LNNTDMPC2(TDMPC2):
         return carry.replace(h=self._encode_one(state.params, carry, obs, dt), prev_action=action)
 
     def planning_model(self, params, heads: jax.Array) -> PlanningModel:
-        """Per-sample world model for MPPI over latents ``{"z": (N,), "key": (2,) uint32}`` (Algorithms 4, 5)."""
+        """Per-sample world model for MPPI over latents ``{"z": (N,), "key": (2,) uint32}`` (Algorithms 4, 5).
+
+        The stochastic variants' transitions draw their noise from the latent's key, which MPPI copies to every
+        sample: all candidate action sequences of one act call are scored under the same noise path (common
+        random numbers, so they are ranked by their actions, not by their draws); each act call draws a new path.
+        """
         cfg = self.config
 
         def dynamics(latent, a):

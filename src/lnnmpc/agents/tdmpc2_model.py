@@ -2,15 +2,16 @@
 
 Components (``z`` is the SimNorm latent (L,), ``a`` the action (A,)):
 
-* encoder   o -> z: MLP (enc_dim x max(num_enc_layers - 1, 1)) -> latent_dim, SimNorm(groups of 8)
-* dynamics  [z, a] -> z': MLP (mlp_dim x 2) -> latent_dim, SimNorm
+* encoder   o -> z: MLP (enc_dim x max(num_enc_layers - 1, 1)) -> latent_dim, LayerNorm, SimNorm(groups of 8)
+* dynamics  [z, a] -> z': MLP (mlp_dim x 2) -> latent_dim, LayerNorm, SimNorm
 * reward    [z, a] -> logits (num_bins,): MLP (mlp_dim x 2) -> num_bins, zero-initialised output layer
 * policy    z -> (mean, raw log std) (A,) each: MLP (mlp_dim x 2) -> 2A
 * Q         [z, a] -> logits (num_q, num_bins): an ensemble of num_q MLPs (dropout 0.01 after the first
   layer), zero-initialised output layers
 
-Hidden layers are Dense -> (Dropout) -> LayerNorm -> Mish, as TD-MPC2's ``NormedLinear``; kernels are
-truncated-normal(0.02), biases zero. Sizes follow TD-MPC2's ``MODEL_SIZE`` table (1M and 5M parameters).
+Hidden layers are Dense -> (Dropout) -> LayerNorm -> Mish, as TD-MPC2's ``NormedLinear`` (whose SimNorm output
+layers are Dense -> LayerNorm -> SimNorm); kernels are normal(0.02), biases zero. Sizes follow TD-MPC2's
+``MODEL_SIZE`` table (1M and 5M parameters).
 """
 
 from __future__ import annotations
@@ -43,6 +44,9 @@ class WorldModelConfig:
     simnorm_dim: int = 8
     num_bins: int = 101
     q_dropout: float = 0.01
+    # LayerNorm between the encoder's and the dynamics' last Dense and their SimNorm, as TD-MPC2's NormedLinear
+    # output layers have (False: the layout of runs before 2026-11-23).
+    simnorm_layer_norm: bool = True
 
     def __post_init__(self):
         for name in ("obs_dim", "action_dim", "enc_dim", "mlp_dim", "latent_dim", "num_enc_layers",
@@ -68,17 +72,21 @@ def mish(x: jax.Array) -> jax.Array:
     return x * jnp.tanh(jax.nn.softplus(x))
 
 
-_KERNEL_INIT = nn.initializers.truncated_normal(0.02)
+# TD-MPC2 draws weights from torch's trunc_normal_(std=0.02), whose cut is at ±2 (absolute, i.e. ±100σ): in
+# effect N(0, 0.02²). flax's truncated_normal(0.02) cuts at ±2σ and has std 0.0176.
+_KERNEL_INIT = nn.initializers.normal(0.02)
 
 
 class MLP(nn.Module):
-    """Hidden NormedLinear layers then a Dense output; optional SimNorm output, zero-initialised output."""
+    """Hidden NormedLinear layers then a Dense output; optional SimNorm output (after a LayerNorm when
+    ``output_layer_norm``), zero-initialised output."""
 
     hidden: tuple[int, ...]
     out_dim: int
     simnorm_dim: int = 0  # 0: no SimNorm on the output
     dropout: float = 0.0  # after the first hidden Dense
     zero_output: bool = False
+    output_layer_norm: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array, deterministic: bool = True) -> jax.Array:
@@ -89,6 +97,8 @@ class MLP(nn.Module):
             x = mish(nn.LayerNorm(epsilon=1e-5)(x))
         init = nn.initializers.zeros if self.zero_output else _KERNEL_INIT
         x = nn.Dense(self.out_dim, kernel_init=init)(x)
+        if self.output_layer_norm:
+            x = nn.LayerNorm(epsilon=1e-5)(x)
         return simnorm(x, self.simnorm_dim) if self.simnorm_dim else x
 
 
@@ -99,8 +109,10 @@ class WorldModel(nn.Module):
 
     def setup(self):
         c = self.config
-        self.encoder = MLP((c.enc_dim,) * max(c.num_enc_layers - 1, 1), c.latent_dim, c.simnorm_dim)
-        self.dynamics = MLP((c.mlp_dim, c.mlp_dim), c.latent_dim, c.simnorm_dim)
+        normed = c.simnorm_layer_norm
+        self.encoder = MLP((c.enc_dim,) * max(c.num_enc_layers - 1, 1), c.latent_dim, c.simnorm_dim,
+                           output_layer_norm=normed)
+        self.dynamics = MLP((c.mlp_dim, c.mlp_dim), c.latent_dim, c.simnorm_dim, output_layer_norm=normed)
         self.setup_heads()
 
     def setup_heads(self):
