@@ -3,9 +3,9 @@
 Deterministic MPPI returns of the freshly initialised agent (zero-initialised reward and Q heads: it cannot tell
 actions apart) are compared with those after a seed phase, an update burst and closed-loop training with one
 update per agent step — the schedule of SPEC §1 at toy scale. Both seeds must improve by a wide margin.
-Measured on CPU (seed 0, jax 0.10.2): before 0.0 / 21.4, after 150.9 / 125.7 (with the model of runs before
-2026-11-23, no LayerNorm before SimNorm and weights cut at ±2σ: 10.1 / 24.2 and 207.6 / 160.4; float32
-round-off alone, e.g. XLA's optimisation level 0, moved those to 176.1 / 175.0).
+Measured on CPU (seed 0, jax 0.10.2): before 0.0 / 21.1, after 204.1 / 141.6 (with the model of runs before
+2026-11-23, no LayerNorm before SimNorm, weights cut at ±2σ, one pair of Q heads per act call: 10.1 / 24.2 and
+207.6 / 160.4; float32 round-off alone, e.g. XLA's optimisation level 0, moved those to 176.1 / 175.0).
 """
 
 import jax

@@ -145,7 +145,7 @@ def test_op_planning_step_is_the_encoder_on_the_prediction(name):
     params, N = state.params, agent.config.model.hidden_size
     z, a = 0.5 * jnp.tanh(jax.random.normal(jax.random.key(5), (N,))), jnp.array([0.3, -0.7])
     key = jax.random.key_data(jax.random.key(6))
-    model = agent.planning_model(params, jnp.array([0, 1]))
+    model = agent.planning_model(params)
     stepped = quick_jit(model.dynamics)({"z": z, "key": key}, a)
 
     apply = lambda *args, method: agent.model.apply({"params": params}, *args, method=method)

@@ -23,7 +23,7 @@ def point_model(target=TARGET, policy=None) -> PlanningModel:
     return PlanningModel(
         dynamics=lambda z, a: z + a,
         reward=lambda z, a: -SCALE * jnp.sum(jnp.square(z + a - target)),
-        value=lambda z, a: jnp.zeros(()),
+        value=lambda z, a, key: jnp.zeros(()),
         policy=policy,
     )
 
@@ -62,7 +62,7 @@ def test_estimate_returns_matches_formula():
     model = PlanningModel(
         dynamics=lambda z, a: 2.0 * z + a,
         reward=lambda z, a: jnp.sum(z * a),
-        value=lambda z, a: jnp.sum(z) + jnp.sum(a),
+        value=lambda z, a, key: jnp.sum(z) + jnp.sum(a),
         policy=lambda z, key: jnp.full_like(z, 0.5),
     )
     z0 = jnp.array([1.0])
@@ -76,6 +76,13 @@ def test_estimate_returns_matches_formula():
             g, z, d = g + d * z * a, 2.0 * z + a, d * 0.9
         expected.append(g + d * (z + 0.5))
     np.testing.assert_allclose(got, expected, rtol=1e-6)
+    # The value's key is one per estimate (TD-MPC2 draws its Q heads per value call): the same for every
+    # sample of an estimate, another for another estimate.
+    keyed = model._replace(value=lambda z, a, key: jax.random.uniform(key))
+    offsets = [np.asarray(estimate_returns(cfg, keyed, z0, actions, jax.random.PRNGKey(k))) - np.asarray(
+        estimate_returns(cfg, model._replace(value=lambda z, a, key: 0.0 * z.sum()), z0, actions,
+                         jax.random.PRNGKey(k))) for k in (0, 1)]
+    assert np.ptp(offsets[0]) < 1e-6 and np.ptp(offsets[1]) < 1e-6 and abs(offsets[0][0] - offsets[1][0]) > 1e-3
 
 
 def test_policy_prior_trajectories_drive_the_plan():
@@ -141,7 +148,7 @@ def test_pytree_latents_match_array_latents():
     dict_model = PlanningModel(
         dynamics=lambda z, a: {"pos": z["pos"] + a, "t": z["t"] + 1.0, "h": jnp.tanh(z["h"])},
         reward=lambda z, a: array_model.reward(z["pos"], a),
-        value=lambda z, a: jnp.zeros(()) * z["t"],
+        value=lambda z, a, key: jnp.zeros(()) * z["t"],
         policy=lambda z, key: array_model.policy(z["pos"], key),
     )
     z_dict = {"pos": jnp.array([0.2, 0.1]), "t": jnp.zeros(()), "h": jnp.ones((3, 4))}

@@ -219,7 +219,7 @@ class LNNTDMPC2(TDMPC2):
         carry = self._start(carry, first_step)
         return carry.replace(h=self._encode_one(state.params, carry, obs, dt), prev_action=action)
 
-    def planning_model(self, params, heads: jax.Array) -> PlanningModel:
+    def planning_model(self, params) -> PlanningModel:
         """Per-sample world model for MPPI over latents ``{"z": (N,), "key": (2,) uint32}`` (Algorithms 4, 5).
 
         The stochastic variants' transitions draw their noise from the latent's key, which MPPI copies to every
@@ -238,7 +238,7 @@ class LNNTDMPC2(TDMPC2):
             dynamics=dynamics,
             reward=lambda lat, a: M.two_hot_inv(self._apply(params, lat["z"], a, method="reward"),
                                                 cfg.model.num_bins, cfg.vmin, cfg.vmax),
-            value=lambda lat, a: self._q_values(params, lat["z"], a, heads).mean(axis=0),
+            value=lambda lat, a, k: self._q_values(params, lat["z"], a, self._two_heads(k)).mean(axis=0),
             policy=lambda lat, k: self._policy_sample(params, lat["z"], k).action,
         )
 
@@ -248,8 +248,8 @@ class LNNTDMPC2(TDMPC2):
         params = state.params
         carry = self._start(carry, first_step)
         h = self._encode_one(params, carry, obs, dt)
-        k_heads, k_plan, k_model = jax.random.split(key, 3)
+        k_plan, k_model = jax.random.split(key)
         latent = {"z": h, "key": jax.random.key_data(k_model)}
-        action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params, self._two_heads(k_heads)),
+        action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params),
                                     latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step)
         return action, LNNCarry(h=h, prev_action=action, plan_mean=mean)

@@ -35,13 +35,15 @@ Latent = Any  # an arbitrary pytree of arrays (one sample, no batch axis)
 class PlanningModel(NamedTuple):
     """Per-sample pure functions of the world model (no batch axis; the planner vmaps them).
 
-    dynamics(z, a) -> z' (same pytree structure as z); reward(z, a) -> scalar; value(z, a) -> scalar terminal Q;
-    policy(z, key) -> a, one sample from the policy prior (actions in [-1, 1]).
+    dynamics(z, a) -> z' (same pytree structure as z); reward(z, a) -> scalar; value(z, a, key) -> scalar
+    terminal Q, ``key`` shared by all samples of one estimate (TD-MPC2 draws the Q heads it averages anew for each
+    value estimate, i.e. each MPPI iteration); policy(z, key) -> a, one sample from the policy prior (actions in
+    [-1, 1]).
     """
 
     dynamics: Callable[[Latent, jax.Array], Latent]
     reward: Callable[[Latent, jax.Array], jax.Array]
-    value: Callable[[Latent, jax.Array], jax.Array]
+    value: Callable[[Latent, jax.Array, jax.Array], jax.Array]
     policy: Callable[[Latent, jax.Array], jax.Array]
 
 
@@ -133,8 +135,9 @@ def estimate_returns(
 
     init = (z, jnp.zeros((n,), actions.dtype), jnp.ones((), actions.dtype))
     (z_h, ret, discount), _ = jax.lax.scan(step, init, actions, unroll=config.unroll)
-    a_h = _policy_batch(model, z_h, key, n)
-    return ret + discount * jax.vmap(model.value)(z_h, a_h)
+    k_policy, k_value = jax.random.split(key)
+    a_h = _policy_batch(model, z_h, k_policy, n)
+    return ret + discount * jax.vmap(model.value, in_axes=(0, 0, None))(z_h, a_h, k_value)
 
 
 def mppi_plan(

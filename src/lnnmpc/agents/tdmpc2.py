@@ -14,7 +14,7 @@ last record's action and reward are unused), following TD-MPC2:
 * the target Q network follows the online one with τ = 0.01.
 
 Acting plans with MPPI (:mod:`lnnmpc.agents.mppi`) through the latent model; the two Q heads averaged for the
-terminal value are drawn once per act call.
+terminal value are drawn anew for each MPPI iteration's value estimate, as TD-MPC2 does.
 """
 
 from __future__ import annotations
@@ -232,16 +232,14 @@ class TDMPC2:
              first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
         """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A))."""
         params, cfg = state.params, self.config
-        k_heads, k_plan = jax.random.split(key)
-        heads = self._two_heads(k_heads)
         model = PlanningModel(
             dynamics=lambda z, a: self._apply(params, z, a, method="next"),
             reward=lambda z, a: M.two_hot_inv(self._apply(params, z, a, method="reward"),
                                               cfg.model.num_bins, cfg.vmin, cfg.vmax),
-            value=lambda z, a: self._q_values(params, z, a, heads).mean(axis=0),
+            value=lambda z, a, k: self._q_values(params, z, a, self._two_heads(k)).mean(axis=0),
             policy=lambda z, k: self._policy_sample(params, z, k).action,
         )
         z = self._apply(params, obs, method="encode")
-        action, mean, _ = mppi_plan(cfg.planner, model, z, prev_mean, k_plan, explore=explore,
+        action, mean, _ = mppi_plan(cfg.planner, model, z, prev_mean, key, explore=explore,
                                     first_step=first_step)
         return action, mean
