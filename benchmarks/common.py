@@ -45,10 +45,10 @@ def time_call(fn, *args, repeats: int = 5) -> dict:
     return {"median_s": statistics.median(times), "min_s": min(times), "times_s": times, "first_call_s": first}
 
 
-def compiled_gflop(jitted, *args) -> float | None:
-    """GFLOP of one call of ``jitted`` by XLA's cost analysis of the compiled program (None where the backend
-    gives none). Set against the call's time it says how far from compute-bound the call is."""
-    cost = jitted.lower(*args).compile().cost_analysis()
+def compiled_gflop(compiled) -> float | None:
+    """GFLOP of one call of a compiled program (``jax.jit(f).lower(...).compile()``) by XLA's cost analysis (None
+    where the backend gives none). Set against the call's time it says how far from compute-bound the call is."""
+    cost = compiled.cost_analysis()
     if isinstance(cost, (list, tuple)):  # older jax: one dict per device
         cost = cost[0] if cost else None
     flops = (cost or {}).get("flops")

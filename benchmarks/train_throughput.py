@@ -62,12 +62,12 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     env_step = jax.jit(jax.vmap(jax.vmap(loop.env.step)))
     actions = jnp.zeros((seeds, envs, act_dim))
     record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
-    update = jax.jit(jax.vmap(loop._update))
     update_keys = jax.random.split(jax.random.key(2), seeds)
+    update = jax.jit(jax.vmap(loop._update)).lower(ts, update_keys).compile()  # timed and cost-analysed
     record["update_ms"] = 1e3 * time_call(update, ts, update_keys, repeats=args.repeats)["median_s"]
     # XLA's count of the update's arithmetic, and the rate it ran at: far below the device's peak means the
     # update is latency-bound (many small kernels), not compute-bound.
-    record["update_gflop"] = compiled_gflop(update, ts, update_keys)
+    record["update_gflop"] = compiled_gflop(update)
     if record["update_gflop"] is not None:
         record["update_tflop_per_s"] = record["update_gflop"] / record["update_ms"]
     if args.skip_chunk:
