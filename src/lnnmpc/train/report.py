@@ -219,6 +219,16 @@ def write_reports(run: str, extra: dict | None = None) -> None:
         f.write(summary_text(run, config, table, refs, extra or {}))
 
 
+def eval_scalars(rows: list[dict]) -> dict[str, float]:
+    """One evaluation's rows (all seeds and episodes) -> the scalars the loggers plot: return mean and std, and
+    the mean effective rank where the rows carry it."""
+    scalars = {"eval/return_mean": float(np.mean([r["return"] for r in rows])),
+               "eval/return_std": float(np.std([r["return"] for r in rows]))}
+    if "effective_rank" in rows[0]:
+        scalars["eval/effective_rank_mean"] = float(np.mean([r["effective_rank"] for r in rows]))
+    return scalars
+
+
 class ScalarLogger:
     """TensorBoard scalars under ``<run>/tensorboard`` (needs ``tensorboardX``; written locally, no network)."""
 
@@ -237,12 +247,8 @@ class ScalarLogger:
 
     def eval_rows(self, rows: list[dict]) -> None:
         if rows:
-            returns = [r["return"] for r in rows]
-            self.writer.add_scalar("eval/return_mean", float(np.mean(returns)), rows[0]["env_step"])
-            self.writer.add_scalar("eval/return_std", float(np.std(returns)), rows[0]["env_step"])
-            if "effective_rank" in rows[0]:
-                self.writer.add_scalar("eval/effective_rank_mean", float(np.mean([r["effective_rank"] for r in rows])),
-                                       rows[0]["env_step"])
+            for name, value in eval_scalars(rows).items():
+                self.writer.add_scalar(name, value, rows[0]["env_step"])
 
     def close(self) -> None:
         self.writer.close()
@@ -276,11 +282,7 @@ class WandbLogger:
 
     def eval_rows(self, rows: list[dict]) -> None:
         if rows:
-            returns = [r["return"] for r in rows]
-            ranks = {"eval/effective_rank_mean": float(np.mean([r["effective_rank"] for r in rows]))} \
-                if "effective_rank" in rows[0] else {}
-            self.run.log({"env_step": rows[0]["env_step"], "eval/return_mean": float(np.mean(returns)),
-                          "eval/return_std": float(np.std(returns)), **ranks})
+            self.run.log({"env_step": rows[0]["env_step"], **eval_scalars(rows)})
 
     def close(self) -> None:
         self.run.finish()
