@@ -161,7 +161,7 @@ def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_
 
 def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(reference, tmp_path, monkeypatch, cache):
     import lnnmpc
-    from lnnmpc.train import trainer
+    from lnnmpc.train import runfolder, trainer
 
     monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
     run = tmp_path / "diverged"
@@ -180,8 +180,10 @@ def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(referenc
         return call
 
     monkeypatch.setattr(trainer._Run, "chunk_fn", poisoned)
+    # compile_ahead off: the first training chunk diverges, so the run never evaluates (nothing to compile ahead)
+    config = runfolder.saved_config(str(run), compile_ahead="off")
     with pytest.raises(lnnmpc.TrainingDiverged) as error:
-        lnnmpc.train(resume=str(run), steps=2400)
+        lnnmpc.train(config, resume=str(run), steps=2400)
     last = before[-1]
     assert f"non-finite total_loss (NaN or Inf) at env step ~{last + 16:,}, seed 1" in str(error.value)
     assert f"last good checkpoint ({last:,} env steps) is kept" in str(error.value)

@@ -88,10 +88,12 @@ class AheadOfTime:
 def compile_ahead(jobs: list[tuple[Callable, tuple]]) -> list[AheadOfTime]:
     """Compiles every ``(jitted, example_args)`` job at once, in threads (XLA compiles without the GIL, so
     several programs build in parallel on a machine with several cores: the trainer's seed phase, update burst,
-    training chunk and evaluation programs then cost about the slowest one's time instead of the sum)."""
-    def build(job):
-        jitted, args = job
-        return AheadOfTime(jitted, jitted.lower(*args).compile())
+    training chunk and evaluation programs then cost about the slowest one's time instead of the sum).
 
+    The programs are traced and lowered one after the other on this thread, each handed to a compiling thread as
+    soon as it is lowered. Traced concurrently in threads, JAX can lay out shared inner functions differently: the
+    same computation, but other programs for XLA's persistent compilation cache, which a resumed run or an
+    evaluation (jitted one at a time) then misses and compiles again."""
     with ThreadPoolExecutor(max_workers=max(1, len(jobs))) as pool:
-        return list(pool.map(build, jobs))
+        futures = [pool.submit(jitted.lower(*args).compile) for jitted, args in jobs]
+        return [AheadOfTime(jitted, future.result()) for (jitted, _), future in zip(jobs, futures, strict=True)]
