@@ -29,18 +29,20 @@ from common import compiled_gflop, default_out, environment_info, time_call, wri
 
 from lnnmpc import envs as envs_lib  # noqa: E402
 from lnnmpc.agents.registry import make_agent  # noqa: E402
+from lnnmpc.train.config import parse_overrides  # noqa: E402
 from lnnmpc.train.loop import LoopConfig, TrainingLoop  # noqa: E402
 
 
-def build_loop(task: str, agent: str, envs: int, small: bool) -> TrainingLoop:
-    """The trainer's loop with default settings (replay sized for 100K environment steps)."""
+def build_loop(task: str, agent: str, envs: int, small: bool, overrides: dict | None = None) -> TrainingLoop:
+    """The trainer's loop with default settings (replay sized for 100K environment steps), agent ``overrides``
+    as ``--set`` gives them."""
     env = envs_lib.make(task)
-    agent = make_agent(agent, env.observation_size, env.action_size, small=small)
+    agent = make_agent(agent, env.observation_size, env.action_size, small=small, overrides=overrides or {})
     return TrainingLoop(agent, env, env, LoopConfig(num_envs=envs, replay_capacity=51_000))
 
 
 def measure(task: str, seeds: int, envs: int, args) -> dict:
-    loop = build_loop(task, args.agent, envs, args.small)
+    loop = build_loop(task, args.agent, envs, args.small, parse_overrides(args.overrides))
     ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(0), seeds))
     seed_chunk = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
     ts, _ = seed_chunk(ts, args.fill)
@@ -101,6 +103,8 @@ def main(argv=None):
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
     parser.add_argument("--matmul-precision", choices=("default", "tensorfloat32", "bfloat16", "highest"),
                         default="default", help="jax_default_matmul_precision for every program timed")
+    parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
+                        help="agent hyperparameter override, repeatable (e.g. --set flat_optimizer=true)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
     if args.matmul_precision != "default":

@@ -1,11 +1,8 @@
-"""How many XLA ops the TD-MPC2 update compiles to, with the optimisers as they are and with each optimiser's
-Adam over one flat vector (``optax.flatten``), on this machine's backend (CPU here: a proxy for the GPU's kernel
-count, since the update is latency-bound; see benchmarks/results/README.md).
+"""How many XLA ops an agent's update compiles to, with Adam per parameter leaf and with ``flat_optimizer`` (each
+optimiser's Adam over one flat vector, ``optax.flatten``), on this machine's backend (on the CPU a proxy for the
+GPU's kernel count, since the update is latency-bound; see benchmarks/results/README.md).
 
     python benchmarks/update_kernels.py [--task walker-run] [--out results/<file>.json]
-
-The flattened variant ignores the encoder's learning-rate scale and the frozen groups (it only counts ops); it is
-a measurement for deciding whether a flat optimiser is worth building, not a training setting.
 """
 
 import argparse
@@ -14,7 +11,6 @@ import sys
 
 import jax
 import jax.numpy as jnp
-import optax
 
 from lnnmpc import envs
 from lnnmpc.agents.registry import make_agent
@@ -44,12 +40,10 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="JSON file for the counts (with device and versions)")
     args = parser.parse_args()
     env = envs.make(args.task)
-    agent = make_agent(args.agent, env.observation_size, env.action_size)
-    counts = {"as_built": update_op_counts(agent, env)}
-    clip = optax.clip_by_global_norm(agent.config.grad_clip_norm)
-    agent.model_tx = optax.flatten(optax.chain(clip, optax.adam(agent.config.lr)))
-    agent.policy_tx = optax.flatten(optax.chain(clip, optax.adam(agent.config.lr, eps=1e-5)))
-    counts["flat_adam"] = update_op_counts(agent, env)
+    counts = {}
+    for flat in (False, True):
+        agent = make_agent(args.agent, env.observation_size, env.action_size, overrides={"flat_optimizer": flat})
+        counts["flat_optimizer" if flat else "per_leaf"] = update_op_counts(agent, env)
     for name, value in counts.items():
         print(jax.default_backend(), args.agent, args.task, name, value)
     if args.out:

@@ -164,3 +164,25 @@ def test_world_model_gradient_is_clipped_by_one_global_norm(agent):
 
     np.testing.assert_allclose(first_moment_norm(True), 0.1 * 1e-6, rtol=1e-3)  # one norm over both groups
     np.testing.assert_allclose(first_moment_norm(False), 0.1 * 1e-6 * np.sqrt(2), rtol=1e-3)  # each group's own
+
+
+def test_flat_optimizer_gives_the_per_leaf_optimizers_updates(agent):
+    """``flat_optimizer``: one Adam over a flat vector with the groups' learning rates as scales makes the same
+    updates as Adam per leaf (the encoder's 0.3 x steps, the frozen groups unmoved), through several updates with
+    a binding gradient clip."""
+    flat = type(agent)(dataclasses.replace(agent.config, flat_optimizer=True, grad_clip_norm=0.5))
+    leafwise = type(agent)(dataclasses.replace(agent.config, grad_clip_norm=0.5))
+    states = [a.init(jax.random.key(7)) for a in (leafwise, flat)]
+    updates = [jax.jit(a.update) for a in (leafwise, flat)]
+    for i in range(4):
+        states = [update(state, _batch(10 + i), jax.random.key(20 + i))[0]
+                  for update, state in zip(updates, states, strict=True)]
+    start = leafwise.init(jax.random.key(7)).params
+    moved = 0
+    for a, b, s in zip(*(jax.tree_util.tree_leaves(st.params) for st in states), jax.tree_util.tree_leaves(start),
+                       strict=True):
+        np.testing.assert_allclose(np.asarray(b), np.asarray(a), rtol=1e-5, atol=1e-6)
+        moved += int(not np.array_equal(np.asarray(a), np.asarray(s)))
+    assert moved == len(jax.tree_util.tree_leaves(start))  # every leaf trained, so the comparison is not vacuous
+    with pytest.raises(ValueError, match="flat_optimizer=True needs joint_grad_clip=True"):
+        dataclasses.replace(agent.config, flat_optimizer=True, joint_grad_clip=False)
