@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from lnn_helpers import quick_jit
 
 from lnnmpc.agents import math as M
 from lnnmpc.agents.mppi import MPPIConfig
@@ -157,7 +158,7 @@ def test_world_model_gradient_is_clipped_by_one_global_norm(agent):
 
     def first_moment_norm(joint: bool) -> float:
         tight = type(agent)(dataclasses.replace(agent.config, grad_clip_norm=1e-6, joint_grad_clip=joint))
-        state, _ = jax.jit(tight.update)(tight.init(jax.random.key(5)), _batch(5), jax.random.key(6))
+        state, _ = quick_jit(tight.update)(quick_jit(tight.init)(jax.random.key(5)), _batch(5), jax.random.key(6))
         mus = [x for path, x in jax.tree_util.tree_flatten_with_path(state.model_opt)[0]
                if "mu" in jax.tree_util.keystr(path) and "policy_head" not in jax.tree_util.keystr(path)]
         return float(np.sqrt(sum(float(jnp.sum(jnp.square(m))) for m in mus)))
@@ -172,12 +173,12 @@ def test_flat_optimizer_gives_the_per_leaf_optimizers_updates(agent):
     a binding gradient clip."""
     flat = type(agent)(dataclasses.replace(agent.config, flat_optimizer=True, grad_clip_norm=0.5))
     leafwise = type(agent)(dataclasses.replace(agent.config, grad_clip_norm=0.5))
-    states = [a.init(jax.random.key(7)) for a in (leafwise, flat)]
-    updates = [jax.jit(a.update) for a in (leafwise, flat)]
+    states = [quick_jit(a.init)(jax.random.key(7)) for a in (leafwise, flat)]
+    start = states[0].params
+    updates = [quick_jit(a.update) for a in (leafwise, flat)]  # XLA's CPU optimisations off: half the compile
     for i in range(4):
         states = [update(state, _batch(10 + i), jax.random.key(20 + i))[0]
                   for update, state in zip(updates, states, strict=True)]
-    start = leafwise.init(jax.random.key(7)).params
     moved = 0
     for a, b, s in zip(*(jax.tree_util.tree_leaves(st.params) for st in states), jax.tree_util.tree_leaves(start),
                        strict=True):
