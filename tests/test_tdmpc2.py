@@ -172,7 +172,7 @@ def test_flat_optimizer_gives_the_per_leaf_optimizers_updates(agent):
     updates as Adam per leaf (the encoder's 0.3 x steps, the frozen groups unmoved), through several updates with
     a binding gradient clip."""
     flat = type(agent)(dataclasses.replace(agent.config, flat_optimizer=True, grad_clip_norm=0.5))
-    leafwise = type(agent)(dataclasses.replace(agent.config, grad_clip_norm=0.5))
+    leafwise = type(agent)(dataclasses.replace(agent.config, flat_optimizer=False, grad_clip_norm=0.5))
     states = [quick_jit(a.init)(jax.random.key(7)) for a in (leafwise, flat)]
     start = states[0].params
     updates = [quick_jit(a.update) for a in (leafwise, flat)]  # XLA's CPU optimisations off: half the compile

@@ -8,6 +8,8 @@
 #
 # JOBS: one line per run, "<name> <trainer arguments>" (lines starting with # are skipped); each becomes
 #   python3 -m lnnmpc.train.cli train <arguments> --out runs/batch/<name> --compile-cache runs/jaxcache
+# A line "<name> experiment <study arguments>" runs a study instead (python3 -m lnnmpc.experiments.run <arguments>
+# --runs-dir runs/batch/experiments --out runs/batch/studies): its runs, then its evaluations and tables.
 # A run stopped by its timeout saves a checkpoint after its running chunk (SIGTERM), so what it measured is kept.
 # Each report prints every run's progress line and packs the run folders without checkpoints, the logs and
 # nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
@@ -22,7 +24,7 @@ shift
 
 report_after() {
     local end=$(($(date +%s) + $1))
-    while [ "$(date +%s)" -lt "$end" ] && pgrep -f "lnnmpc.train.cli train" >/dev/null; do sleep 5; done
+    while [ "$(date +%s)" -lt "$end" ] && pgrep -f "lnnmpc[.](train[.]cli train|experiments[.]run)" >/dev/null; do sleep 5; done
     echo "=== $(date -u +%T) ($(($(date +%s) - $(cat $BATCH/started))) s since start)"
     for log in "$BATCH"/*.log; do
         printf '%-34s %s\n' "$(basename "$log" .log)" "$(tr '\r' '\n' <"$log" | grep '^\[' | tail -1 | cut -c1-110)"
@@ -65,9 +67,15 @@ start)
     grep -v -E '^\s*(#|$)' "$jobs" | while read -r name args; do
         gpu=$((index % gpus))
         index=$((index + 1))
+        if [ "${args%% *}" = experiment ]; then
+            command="python3 -m lnnmpc.experiments.run ${args#experiment } --runs-dir $BATCH/experiments"
+            command="$command --out $BATCH/studies"
+        else
+            command="python3 -m lnnmpc.train.cli train $args --out $BATCH/$name --compile-cache runs/jaxcache"
+        fi
         # shellcheck disable=SC2086  # the arguments are meant to split
-        CUDA_VISIBLE_DEVICES=$gpu setsid nohup timeout -s TERM "$seconds" python3 -m lnnmpc.train.cli train $args \
-            --out "$BATCH/$name" --compile-cache runs/jaxcache >"$BATCH/$name.log" 2>&1 </dev/null &
+        CUDA_VISIBLE_DEVICES=$gpu setsid nohup timeout -s TERM "$seconds" $command >"$BATCH/$name.log" 2>&1 \
+            </dev/null &
         echo "$name (GPU $gpu): $args" | tee -a "$BATCH/commands.txt"
     done
     report_after "$report"

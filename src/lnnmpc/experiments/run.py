@@ -22,7 +22,7 @@ import sys
 from lnnmpc.experiments import grid
 from lnnmpc.experiments.aggregate import markdown, study_rows, write_csv
 from lnnmpc.experiments.grid import GridOptions, RunSpec
-from lnnmpc.train.config import command_status
+from lnnmpc.train.config import ConfigError, command_status
 
 DEFAULT_OUT = os.path.join("experiments", "results", "studies")
 
@@ -74,10 +74,32 @@ def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -
     return csv_path, md_path
 
 
+def select_conditions(specs: list[RunSpec], tasks: tuple[str, ...] | None, train_obs: str | None) -> list[RunSpec]:
+    """The runs whose task is in ``tasks`` and whose training corruption is ``train_obs`` ("" or "clean": none);
+    None keeps all. A value that matches none of the study's conditions is refused, naming the ones it has."""
+    if tasks is not None:
+        known = sorted({spec.condition.task for spec in specs})
+        unknown = [t for t in tasks if t not in known]
+        if unknown:
+            raise ConfigError(f"task(s) {', '.join(unknown)} are not in this study; its tasks: {', '.join(known)}")
+        specs = [spec for spec in specs if spec.condition.task in tasks]
+    if train_obs is not None:
+        wanted = "" if train_obs == "clean" else train_obs
+        known = sorted({spec.condition.train_obs or "clean" for spec in specs})
+        specs = [spec for spec in specs if spec.condition.train_obs == wanted]
+        if not specs:
+            raise ConfigError(f"no condition trains under {train_obs!r}; the study's: {', '.join(known)}")
+    return specs
+
+
 def run_study(name: str, options: GridOptions, *, out: str = DEFAULT_OUT, dry_run: bool = False,
-              train: bool = True, evaluate: bool = True) -> list[str]:
-    """The whole study (module docstring); ``dry_run`` only lists the grid. Returns the lines it printed."""
-    specs = grid.expand(grid.get_study(name), options)
+              train: bool = True, evaluate: bool = True, tasks: tuple[str, ...] | None = None,
+              train_obs: str | None = None) -> list[str]:
+    """The whole study (module docstring), or the runs of the conditions that ``tasks`` and ``train_obs`` select
+    (:func:`select_conditions`; the tables still aggregate every run that exists); ``dry_run`` only lists the
+    grid. Returns the lines it printed."""
+    all_specs = grid.expand(grid.get_study(name), options)
+    specs = select_conditions(all_specs, tasks, train_obs)
     if dry_run:
         lines = [f"{name}: {len(specs)} runs of {options.seeds} seed(s) x {options.steps:,} env steps"]
         return lines + grid.describe(specs, options)
@@ -86,7 +108,7 @@ def run_study(name: str, options: GridOptions, *, out: str = DEFAULT_OUT, dry_ru
             train_run(spec, options.steps)
         if evaluate:
             evaluate_run(spec, options)
-    return [f"wrote {path}" for path in aggregate(name, specs, options, out)]
+    return [f"wrote {path}" for path in aggregate(name, all_specs, options, out)]
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -95,6 +117,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--steps", type=int, default=200_000, help="environment steps per run (default 200000)")
     p.add_argument("--seeds", type=int, default=3, help="seeds per run, trained together (default 3)")
     p.add_argument("--agents", default=None, help="comma-separated subset of the study's agents")
+    p.add_argument("--tasks", default=None, help="comma-separated subset of the study's tasks")
+    p.add_argument("--train-obs", default=None,
+                   help='only the conditions trained under this corruption text (e.g. "noise=0.1,flicker=0.2"; '
+                        '"clean": none); --dry-run lists them')
     p.add_argument("--envs", type=int, default=1, help="environments per seed (default 1)")
     p.add_argument("--model-size", type=int, default=5, choices=(1, 5), help="tdmpc2 size in M parameters")
     p.add_argument("--small", action="store_true", help="CPU smoke-test sizes (not the thesis's setting)")
@@ -108,17 +134,22 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
+def _split(text: str | None) -> tuple[str, ...] | None:
+    return None if text is None else tuple(part.strip() for part in text.split(",") if part.strip())
+
+
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
 
     def study() -> str:
-        agents = None if args.agents is None else tuple(a.strip() for a in args.agents.split(",") if a.strip())
+        agents = _split(args.agents)
         options = GridOptions(steps=args.steps, seeds=args.seeds, agents=agents, envs=args.envs,
                               model_size=args.model_size, small=args.small, runs_dir=args.runs_dir,
                               episodes=args.episodes, backend=args.backend)
         return "\n".join(run_study(args.name, options, out=args.out, dry_run=args.dry_run,
                                    train=not (args.no_train or args.aggregate_only),
-                                   evaluate=not args.aggregate_only))
+                                   evaluate=not args.aggregate_only, tasks=_split(args.tasks),
+                                   train_obs=args.train_obs))
 
     return command_status(study)
 
