@@ -108,6 +108,26 @@ def test_dry_run_lists_the_grid(tmp_path, capsys):
     assert run.main(["fig5_18", "--agents", "cfc-op-det", "--dry-run"]) == 2
 
 
+def test_select_conditions_by_task_and_training_corruption(tmp_path, capsys):
+    options = grid.GridOptions(runs_dir=str(tmp_path), agents=("tdmpc2",))
+    specs = grid.expand(grid.get_study("table5_3"), options)
+    walker = run.select_conditions(specs, ("walker-run", "acrobot-swingup"), None)
+    assert [s.condition.task for s in walker] == ["acrobot-swingup", "walker-run"]
+    assert run.select_conditions(specs, None, "clean") == specs and run.select_conditions(specs, None, None) == specs
+    noisy = grid.expand(grid.get_study("table5_4"), options)
+    flicker = run.select_conditions(noisy, ("cartpole-swingup",), "noise=0.1,flicker=0.2")
+    assert len(flicker) == 1 and flicker[0].config.obs == {"obs_noise": 0.1, "flicker": 0.2}
+    with pytest.raises(ConfigError, match="task.s. walker-fly are not in this study; its tasks: acrobot-swingup"):
+        run.select_conditions(specs, ("walker-fly",), None)
+    with pytest.raises(ConfigError, match="no condition trains under 'noise=0.5'; the study's: noise=0.1,flicker"):
+        run.select_conditions(noisy, None, "noise=0.5")
+    assert run.main(["table5_3", "--agents", "tdmpc2", "--tasks", "walker-run,cartpole-swingup", "--dry-run",
+                     "--runs-dir", str(tmp_path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "table5_3: 2 runs of 3 seed(s) x 200,000 env steps" and len(out) == 3
+    assert run.main(["table5_4", "--train-obs", "delay=3", "--dry-run", "--runs-dir", str(tmp_path)]) == 2
+
+
 def test_summarize_against_hand_computation():
     returns = np.array([[100.0, 200.0, 300.0], [400.0, 500.0, 600.0]])
     s = summarize(returns)

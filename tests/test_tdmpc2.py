@@ -157,7 +157,8 @@ def test_world_model_gradient_is_clipped_by_one_global_norm(agent):
     np.testing.assert_allclose(np.asarray(small["encoder"]["w"]), grads["encoder"]["w"], rtol=1e-6)
 
     def first_moment_norm(joint: bool) -> float:
-        tight = type(agent)(dataclasses.replace(agent.config, grad_clip_norm=1e-6, joint_grad_clip=joint))
+        tight = type(agent)(dataclasses.replace(agent.config, grad_clip_norm=1e-6, joint_grad_clip=joint,
+                                                flat_optimizer=False))  # per-leaf state: 'mu' per group
         state, _ = quick_jit(tight.update)(quick_jit(tight.init)(jax.random.key(5)), _batch(5), jax.random.key(6))
         mus = [x for path, x in jax.tree_util.tree_flatten_with_path(state.model_opt)[0]
                if "mu" in jax.tree_util.keystr(path) and "policy_head" not in jax.tree_util.keystr(path)]

@@ -130,7 +130,8 @@ def test_resuming_with_changed_agent_hyperparameters_is_refused(tmp_path):
 
 
 def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_path):
-    """A checkpoint from before nll_beta and joint_grad_clip existed and with the old free-bits default: a det
+    """A checkpoint from before nll_beta, joint_grad_clip and flat_optimizer existed and with the old free-bits
+    default: a det
     variant resumes with the old per-group clipping (it uses neither NLL field); an OP-stoch run is refused with
     the exact --set flags, and resumes once they are given."""
     from lnnmpc.agents.registry import make_agent
@@ -140,16 +141,18 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
 
     def saved_like(agent_config):
         old = agent_config_json(agent_config)
-        del old["nll_beta"], old["joint_grad_clip"]  # the fields did not exist
+        del old["nll_beta"], old["joint_grad_clip"], old["flat_optimizer"]  # the fields did not exist
         old["free_bits"] = -1.0
         runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": old})
 
     det = make_agent("cfc-op-det", 5, 1).config
     saved_like(det)
-    with pytest.raises(ConfigError, match="Restore them with --set joint_grad_clip=False or start a new run"):
+    with pytest.raises(ConfigError, match="Restore them with --set flat_optimizer=False --set joint_grad_clip=False "
+                                          "or start a new run"):
         check_agent_config(run, det)
-    check_agent_config(run, make_agent("cfc-op-det", 5, 1, overrides={"joint_grad_clip": "false"}).config)
-    stoch = make_agent("cfc-op-stoch", 5, 1, overrides={"joint_grad_clip": False}).config
+    old_clip = {"joint_grad_clip": "false", "flat_optimizer": "false"}
+    check_agent_config(run, make_agent("cfc-op-det", 5, 1, overrides=old_clip).config)
+    stoch = make_agent("cfc-op-stoch", 5, 1, overrides=old_clip).config
     saved_like(stoch)
     with pytest.raises(ConfigError) as error:
         check_agent_config(run, stoch)
@@ -157,19 +160,19 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
     assert "free_bits: checkpoint has -1.0, now -2.0" in message and "nll_beta: checkpoint has 0.0, now 1.0" in message
     assert "Restore them with --set free_bits=-1.0 --set nll_beta=0.0" in message
     check_agent_config(run, make_agent("cfc-op-stoch", 5, 1, overrides={
-        "free_bits": "-1.0", "nll_beta": "0.0", "joint_grad_clip": "false"}).config)
-    zp = make_agent("cfc-zp-stoch", 5, 1, overrides={"nll_beta": 0, "joint_grad_clip": False}).config
+        "free_bits": "-1.0", "nll_beta": "0.0", **old_clip}).config)
+    zp = make_agent("cfc-zp-stoch", 5, 1, overrides={"nll_beta": 0, **old_clip}).config
     saved_like(zp)
     check_agent_config(run, zp)  # ZP does not use free bits
     # A TD-MPC2 checkpoint from before the SimNorm LayerNorm and the joint clip: its layout and clipping restored.
     old = agent_config_json(make_agent("tdmpc2", 5, 1).config)
-    del old["joint_grad_clip"], old["model"]["simnorm_layer_norm"]
+    del old["joint_grad_clip"], old["model"]["simnorm_layer_norm"], old["flat_optimizer"]
     runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": old})
-    with pytest.raises(ConfigError, match="Restore them with --set joint_grad_clip=False --set "
-                                          "model.simnorm_layer_norm=False or start a new run"):
+    with pytest.raises(ConfigError, match="Restore them with --set flat_optimizer=False --set joint_grad_clip=False "
+                                          "--set model.simnorm_layer_norm=False or start a new run"):
         check_agent_config(run, make_agent("tdmpc2", 5, 1).config)
     check_agent_config(run, make_agent("tdmpc2", 5, 1, overrides={
-        "joint_grad_clip": "false", "model.simnorm_layer_norm": "false"}).config)
+        **old_clip, "model.simnorm_layer_norm": "false"}).config)
 
 
 def test_cli_exits_with_status_2_and_the_message(capsys):
