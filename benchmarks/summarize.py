@@ -5,9 +5,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import glob
 import json
 import os
+import sys
 
 RESULTS = os.path.join(os.path.dirname(__file__), "results")
 
@@ -106,7 +108,8 @@ def main() -> None:
           "| device | file |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(train_rows))
-    plot_env_throughput(os.path.join(RESULTS, "env_throughput.png"))
+    with contextlib.redirect_stdout(sys.stderr):  # what importing matplotlib's plugins prints stays out of the table
+        plot_env_throughput(os.path.join(RESULTS, "env_throughput.png"))
     print("\n![env throughput](env_throughput.png)")
 
 
