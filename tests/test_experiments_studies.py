@@ -117,6 +117,9 @@ def test_select_conditions_by_task_and_training_corruption(tmp_path, capsys):
     noisy = grid.expand(grid.get_study("table5_4"), options)
     flicker = run.select_conditions(noisy, ("cartpole-swingup",), "noise=0.1,flicker=0.2")
     assert len(flicker) == 1 and flicker[0].config.obs == {"obs_noise": 0.1, "flicker": 0.2}
+    assert run.select_conditions(noisy, None, "flicker=0.2,obs_noise=0.1") == flicker  # options, not text
+    with pytest.raises(ConfigError, match="bad observation option 'nosie'"):
+        run.select_conditions(noisy, None, "nosie=0.1")
     with pytest.raises(ConfigError, match="task.s. walker-fly are not in this study; its tasks: acrobot-swingup"):
         run.select_conditions(specs, ("walker-fly",), None)
     with pytest.raises(ConfigError, match="no condition trains under 'noise=0.5'; the study's: noise=0.1,flicker"):

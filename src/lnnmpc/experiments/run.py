@@ -22,7 +22,7 @@ import sys
 from lnnmpc.experiments import grid
 from lnnmpc.experiments.aggregate import markdown, study_rows, write_csv
 from lnnmpc.experiments.grid import GridOptions, RunSpec
-from lnnmpc.train.config import ConfigError, command_status
+from lnnmpc.train.config import ConfigError, command_status, parse_obs
 
 DEFAULT_OUT = os.path.join("experiments", "results", "studies")
 
@@ -83,10 +83,10 @@ def select_conditions(specs: list[RunSpec], tasks: tuple[str, ...] | None, train
         if unknown:
             raise ConfigError(f"task(s) {', '.join(unknown)} are not in this study; its tasks: {', '.join(known)}")
         specs = [spec for spec in specs if spec.condition.task in tasks]
-    if train_obs is not None:
-        wanted = "" if train_obs == "clean" else train_obs
+    if train_obs is not None:  # compared as options, so "flicker=0.2,noise=0.1" selects "noise=0.1,flicker=0.2"
+        wanted = parse_obs("" if train_obs == "clean" else train_obs)
         known = sorted({spec.condition.train_obs or "clean" for spec in specs})
-        specs = [spec for spec in specs if spec.condition.train_obs == wanted]
+        specs = [spec for spec in specs if parse_obs(spec.condition.train_obs) == wanted]
         if not specs:
             raise ConfigError(f"no condition trains under {train_obs!r}; the study's: {', '.join(known)}")
     return specs
