@@ -131,6 +131,25 @@ def test_select_conditions_by_task_and_training_corruption(tmp_path, capsys):
     assert run.main(["table5_4", "--train-obs", "delay=3", "--dry-run", "--runs-dir", str(tmp_path)]) == 2
 
 
+def test_device_batch_check_validates_every_job_line(tmp_path):
+    """``device_batch.sh check``: each line of a jobs file validated on the CPU before any device time."""
+    import subprocess
+    import sys
+
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("# a comment\n\n"
+                    "study-ok   experiment fig5_19 --small --seeds 1\n"
+                    "train-bad  --task cartpole-balance --small --set lamda=0\n")
+    result = subprocess.run(["bash", script, "check", str(jobs)], capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "PYTHON": sys.executable, "JAX_PLATFORMS": "cpu"}, cwd=tmp_path)
+    assert result.returncode == 1, result.stderr
+    lines = result.stdout.splitlines()
+    assert lines[0] == "ok      study-ok"
+    assert lines[1].startswith("FAILED  train-bad: error: unknown hyperparameter 'lamda'")
+    assert sorted(os.listdir(tmp_path)) == ["jobs.txt"]  # nothing written beside it
+
+
 def test_summarize_against_hand_computation():
     returns = np.array([[100.0, 200.0, 300.0], [400.0, 500.0, 600.0]])
     s = summarize(returns)

@@ -189,6 +189,25 @@ def test_cli_exits_with_status_2_and_the_message(capsys):
     assert exit_.value.code == 2 and "horizon" in capsys.readouterr().err
 
 
+def test_train_check_validates_and_prints_without_writing(tmp_path, capsys):
+    from lnnmpc.train.cli import main
+
+    run = tmp_path / "new" / "run"
+    main(["train", "--task", "cartpole-balance", "--agent", "cfc-zp-det", "--small", "--seeds", "2", "--envs", "3",
+          "--obs", "flicker=0.2,noise=0.1", "--set", "lambda_=0", "--out", str(run), "--check"])
+    out = capsys.readouterr().out
+    assert out.startswith(f"OK: {run} (new run)\n")
+    assert "cartpole-balance, cfc-zp-det, 2 seed(s) x 3 env(s), 200,000 env steps, obs flicker0.2-noise0.1" in out
+    assert "agent overrides: lambda_=0" in out and "chunk 1000 iterations of 6 env steps" in out
+    assert not (tmp_path / "new").exists()  # nothing written
+    with pytest.raises(SystemExit) as exit_:
+        main(["train", "--task", "cartpole-balance", "--small", "--set", "lamda=0", "--out", str(run), "--check"])
+    assert exit_.value.code == 2 and "unknown hyperparameter 'lamda'" in capsys.readouterr().err
+    (tmp_path / "file").write_text("")
+    with pytest.raises(ConfigError, match="cannot be created: .*file' is not a writable folder"):
+        runfolder.check_creatable(str(tmp_path / "file" / "run"))
+
+
 def test_evaluation_arguments_are_checked(tmp_path):
     from lnnmpc.train.evaluate import evaluate
 

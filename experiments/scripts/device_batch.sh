@@ -5,6 +5,9 @@
 #                                               SECONDS`, in its own session so that it outlives the call), then
 #                                               report after REPORT seconds or when all have ended
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
+#   device_batch.sh check JOBS                  before spending device time, here on the CPU: validate every
+#                                               line (train --check; studies --dry-run); exit 1 if any fails
+#                                               ($PYTHON picks the interpreter, default python3)
 #
 # JOBS: one line per run, "<name> <trainer arguments>" (lines starting with # are skipped); each becomes
 #   python3 -m lnnmpc.train.cli train <arguments> --out runs/batch/<name> --compile-cache runs/jaxcache
@@ -19,7 +22,7 @@
 # MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
 set -u
 BATCH=runs/batch
-action=${1:?start or wait}
+action=${1:?start, wait or check}
 shift
 
 report_after() {
@@ -83,8 +86,30 @@ start)
 wait)
     report_after "${1:?REPORT}"
     ;;
+check)
+    jobs=${1:?JOBS file}
+    scratch=$(mktemp -d)
+    failed=0
+    while read -r name args; do
+        if [ "${args%% *}" = experiment ]; then
+            command="${PYTHON:-python3} -m lnnmpc.experiments.run ${args#experiment } --dry-run"
+            command="$command --runs-dir $scratch/experiments --out $scratch/studies"
+        else
+            command="${PYTHON:-python3} -m lnnmpc.train.cli train $args --out $scratch/$name --check"
+        fi
+        # shellcheck disable=SC2086  # the arguments are meant to split
+        if output=$($command 2>&1 </dev/null); then
+            echo "ok      $name"
+        else
+            echo "FAILED  $name: $(echo "$output" | grep -E '^error|Error' | tail -1)"
+            failed=1
+        fi
+    done < <(grep -v -E '^\s*(#|$)' "$jobs")
+    rm -rf "$scratch"
+    exit $failed
+    ;;
 *)
-    echo "unknown action $action (start or wait)" >&2
+    echo "unknown action $action (start, wait or check)" >&2
     exit 2
     ;;
 esac

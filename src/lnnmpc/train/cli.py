@@ -2,6 +2,7 @@
 
     python -m lnnmpc.train.cli train --task walker-run --seeds 4 --steps 200000 --obs "noise=0.1,flicker=0.2"
     python -m lnnmpc.train.cli train --resume runs/walker-run/tdmpc2/20260101-120000-noise0.1-flicker0.2
+    python -m lnnmpc.train.cli train --task walker-run --set lambda_=0 --check   # validate, print, train nothing
     python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control]
     python -m lnnmpc.train.cli video RUN [--out episode.gif]
     python -m lnnmpc.train.cli report RUN            # redraw curve.png and summary.md
@@ -20,7 +21,7 @@ import sys
 
 from lnnmpc import envs
 from lnnmpc.agents.registry import AGENTS
-from lnnmpc.train.config import ConfigError, TrainConfig
+from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag
 
 EXIT_CONFIG, EXIT_DIVERGED, EXIT_INTERRUPTED = 2, 3, 130
 
@@ -59,6 +60,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--compile-cache", help='XLA compilation cache folder ("" turns it off)')
     p.add_argument("--compile-ahead", choices=("auto", "on", "off"),
                    help="compile the run's programs in parallel before training (default auto: with >= 4 cores)")
+    p.add_argument("--check", action="store_true",
+                   help="validate the whole configuration (environments, agent, overrides, resume), print what "
+                        "would run, write and compile nothing")
 
 
 def _eval_parser(sub) -> None:
@@ -97,7 +101,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _config_values(args: argparse.Namespace) -> dict:
-    values = {k: v for k, v in vars(args).items() if k not in ("command", "resume")}
+    values = {k: v for k, v in vars(args).items() if k not in ("command", "resume", "check")}
     if "overrides" in values:
         values["overrides"] = values["overrides"] or []
     return values
@@ -105,18 +109,38 @@ def _config_values(args: argparse.Namespace) -> dict:
 
 def run_train(args: argparse.Namespace) -> str:
     from lnnmpc.train import runfolder
-    from lnnmpc.train.trainer import train
+    from lnnmpc.train.trainer import train, validate
 
     values = _config_values(args)
-    resume = getattr(args, "resume", None)
+    resume, steps, config = getattr(args, "resume", None), None, None
     if resume:
         saved = runfolder.saved_config(resume)
         steps = values.pop("steps", None)
         config = TrainConfig.from_dict({**saved.to_dict(), **values}) if values else None
-        return train(config, resume=resume, steps=steps)
-    if "task" not in values:
+    elif "task" not in values:
         raise ConfigError(f"--task is required (one of: {', '.join(envs.TASKS)}), or --resume RUN")
-    return train(TrainConfig(**values))
+    else:
+        config = TrainConfig(**values)
+    if getattr(args, "check", False):
+        setup = validate(config, resume=resume, steps=steps, create=False)
+        sys.stdout.write(describe_setup(setup))
+        return setup.run
+    return train(config, resume=resume, steps=steps)
+
+
+def describe_setup(setup) -> str:
+    """What ``train --check`` prints: the run folder, whether it resumes, and the resolved settings."""
+    c, loop = setup.config, setup.loop
+    start = (f"resumes at the checkpoint of {setup.resume_step:,} env steps" if setup.resume_step is not None
+             else "new run")
+    overrides = ", ".join(f"{k}={v}" for k, v in sorted(c.overrides.items())) or "none"
+    return (f"OK: {setup.run} ({start})\n"
+            f"  {c.task}, {c.agent}, {c.seeds} seed(s) x {c.envs} env(s), {c.steps:,} env steps, "
+            f"obs {obs_tag(c.obs)}, eval obs {obs_tag(c.eval_obs)}\n"
+            f"  agent overrides: {overrides}\n"
+            f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps, replay "
+            f"{loop.config.replay_capacity:,} per env, batch {loop.config.batch_size}, "
+            f"{setup.num_devices} device(s)\n")
 
 
 def run_command(args: argparse.Namespace) -> None:

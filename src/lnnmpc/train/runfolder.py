@@ -37,6 +37,16 @@ def ensure_writable(folder: str) -> None:
         raise ConfigError(f"output folder {folder!r} is not writable: {error.strerror or error}") from None
 
 
+def check_creatable(folder: str) -> None:
+    """Like :func:`ensure_writable` without creating anything: ``folder`` or its nearest existing parent must be a
+    writable folder (ConfigError naming it otherwise)."""
+    existing = os.path.abspath(folder)
+    while not os.path.exists(existing):
+        existing = os.path.dirname(existing)
+    if not os.path.isdir(existing) or not os.access(existing, os.W_OK | os.X_OK):
+        raise ConfigError(f"output folder {folder!r} cannot be created: {existing!r} is not a writable folder")
+
+
 def write_config(run: str, config: TrainConfig, derived: dict) -> None:
     """Writes config.json atomically: ``{"config": TrainConfig fields, **derived}``."""
     tmp = os.path.join(run, f".{CONFIG_FILE}.tmp")

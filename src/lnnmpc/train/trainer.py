@@ -94,11 +94,13 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
                                                          eval_episodes=config.eval_episodes))
 
 
-def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None) -> Setup:
+def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None,
+             create: bool = True) -> Setup:
     """Checks everything that can be checked without compiling; returns the :class:`Setup` to train with.
 
     ``resume``: a run folder to continue (its config.json is used; ``config``, if also given, must be
     compatible); ``steps`` extends the budget. A ``config.out`` folder that holds checkpoints is resumed too.
+    ``create=False`` (``train --check``) writes nothing: a new run folder is only checked to be creatable.
     """
     if config is None and resume is None:
         raise ConfigError("give a TrainConfig or a run folder to resume")
@@ -121,7 +123,10 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
                                                                               config.overrides))
     loop = build_loop(config)
     config = dataclasses.replace(config, replay_capacity=loop.config.replay_capacity)
-    runfolder.ensure_writable(run)
+    if create:
+        runfolder.ensure_writable(run)
+    else:
+        runfolder.check_creatable(run)
     if config.tensorboard:
         try:
             import tensorboardX  # noqa: F401
