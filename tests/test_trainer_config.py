@@ -131,9 +131,8 @@ def test_resuming_with_changed_agent_hyperparameters_is_refused(tmp_path):
 
 def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_path):
     """A checkpoint from before nll_beta, joint_grad_clip and flat_optimizer existed and with the old free-bits
-    default: a det
-    variant resumes with the old per-group clipping (it uses neither NLL field); an OP-stoch run is refused with
-    the exact --set flags, and resumes once they are given."""
+    default: a det variant resumes with the old per-group clipping and per-leaf Adam (it uses neither NLL field);
+    an OP-stoch run is refused with the exact --set flags, and resumes once they are given."""
     from lnnmpc.agents.registry import make_agent
     from lnnmpc.train.compat import agent_config_json, check_agent_config
 

@@ -25,6 +25,22 @@ BATCH=runs/batch
 action=${1:?start, wait or check}
 shift
 
+job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines)
+    grep -v -E '^\s*(#|$)' "$1"
+}
+
+# The command of one job line "NAME ARGS", its outputs under DIR: a study for "experiment ..." lines (STUDY_EXTRA
+# appended), else a training run (TRAIN_EXTRA appended). `start` and `check` both build their commands here.
+job_command() {  # NAME ARGS DIR TRAIN_EXTRA STUDY_EXTRA
+    local name=$1 args=$2 dir=$3
+    if [ "${args%% *}" = experiment ]; then
+        echo "${PYTHON:-python3} -m lnnmpc.experiments.run ${args#experiment } --runs-dir $dir/experiments" \
+            "--out $dir/studies $5"
+    else
+        echo "${PYTHON:-python3} -m lnnmpc.train.cli train $args --out $dir/$name $4"
+    fi
+}
+
 report_after() {
     local end=$(($(date +%s) + $1))
     while [ "$(date +%s)" -lt "$end" ] && pgrep -f "lnnmpc[.](train[.]cli train|experiments[.]run)" >/dev/null; do sleep 5; done
@@ -49,7 +65,7 @@ start)
     report=${3:?REPORT}
     mkdir -p "$BATCH" runs/jaxcache
     date +%s >"$BATCH/started"
-    count=$(grep -c -v -E '^\s*(#|$)' "$jobs")
+    count=$(job_lines "$jobs" | wc -l)
     gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
     [ "${gpus:-0}" -ge 1 ] || gpus=1
     per_gpu=$(((count + gpus - 1) / gpus))
@@ -67,15 +83,10 @@ start)
         echo "CUDA MPS not used" | tee "$BATCH/mps.txt"
     fi
     index=0
-    grep -v -E '^\s*(#|$)' "$jobs" | while read -r name args; do
+    job_lines "$jobs" | while read -r name args; do
         gpu=$((index % gpus))
         index=$((index + 1))
-        if [ "${args%% *}" = experiment ]; then
-            command="python3 -m lnnmpc.experiments.run ${args#experiment } --runs-dir $BATCH/experiments"
-            command="$command --out $BATCH/studies"
-        else
-            command="python3 -m lnnmpc.train.cli train $args --out $BATCH/$name --compile-cache runs/jaxcache"
-        fi
+        command=$(job_command "$name" "$args" "$BATCH" "--compile-cache runs/jaxcache" "")
         # shellcheck disable=SC2086  # the arguments are meant to split
         CUDA_VISIBLE_DEVICES=$gpu setsid nohup timeout -s TERM "$seconds" $command >"$BATCH/$name.log" 2>&1 \
             </dev/null &
@@ -91,12 +102,7 @@ check)
     scratch=$(mktemp -d)
     failed=0
     while read -r name args; do
-        if [ "${args%% *}" = experiment ]; then
-            command="${PYTHON:-python3} -m lnnmpc.experiments.run ${args#experiment } --dry-run"
-            command="$command --runs-dir $scratch/experiments --out $scratch/studies"
-        else
-            command="${PYTHON:-python3} -m lnnmpc.train.cli train $args --out $scratch/$name --check"
-        fi
+        command=$(job_command "$name" "$args" "$scratch" --check --dry-run)
         # shellcheck disable=SC2086  # the arguments are meant to split
         if output=$($command 2>&1 </dev/null); then
             echo "ok      $name"
@@ -104,7 +110,7 @@ check)
             echo "FAILED  $name: $(echo "$output" | grep -E '^error|Error' | tail -1)"
             failed=1
         fi
-    done < <(grep -v -E '^\s*(#|$)' "$jobs")
+    done < <(job_lines "$jobs")
     rm -rf "$scratch"
     exit $failed
     ;;
