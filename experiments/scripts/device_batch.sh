@@ -13,7 +13,9 @@
 #   python3 -m lnnmpc.train.cli train <arguments> --out runs/batch/<name> --compile-cache runs/jaxcache
 # A line "<name> experiment <study arguments>" runs a study instead (python3 -m lnnmpc.experiments.run <arguments>
 # --runs-dir runs/batch/experiments --out runs/batch/studies): its runs, then its evaluations and tables.
-# A run stopped by its timeout saves a checkpoint after its running chunk (SIGTERM), so what it measured is kept.
+# A run stopped by its timeout saves a checkpoint after its running chunk (SIGTERM), so what it measured is kept;
+# a study stopped so then evaluates and aggregates its newest checkpoints (--no-train, under EVAL_SECONDS, default
+# 300 more seconds), so a study line yields its table's cells (at the step reached) even when cut short.
 # Each report prints every run's progress line and packs the run folders without checkpoints, the logs and
 # nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
 # On a machine of several GPUs the jobs are dealt out round robin, one GPU each (CUDA_VISIBLE_DEVICES; job i on
@@ -87,9 +89,12 @@ start)
         gpu=$((index % gpus))
         index=$((index + 1))
         command=$(job_command "$name" "$args" "$BATCH" "--compile-cache runs/jaxcache" "")
-        # shellcheck disable=SC2086  # the arguments are meant to split
-        CUDA_VISIBLE_DEVICES=$gpu setsid nohup timeout -s TERM "$seconds" $command >"$BATCH/$name.log" 2>&1 \
-            </dev/null &
+        if [ "${args%% *}" = experiment ]; then  # a study stopped while training still evaluates what it has
+            command="timeout -s TERM $seconds $command; timeout -s TERM ${EVAL_SECONDS:-300} $command --no-train"
+        else
+            command="timeout -s TERM $seconds $command"
+        fi
+        CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "$command" >"$BATCH/$name.log" 2>&1 </dev/null &
         echo "$name (GPU $gpu): $args" | tee -a "$BATCH/commands.txt"
     done
     report_after "$report"
