@@ -183,3 +183,48 @@ def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
         ranks = list(csv.DictReader(f))
     assert [(r["env_step"], float(r["effective_rank"]), float(r["std"])) for r in ranks] == [
         ("100", 1.5, 0.5), ("300", 3.5, 0.5), ("500", 5.5, 0.5)]
+
+
+def _rank_run(folder, rows, rank_column=True):
+    """A results folder as the trainer leaves it, minus checkpoints: config.json and eval.csv only."""
+    import json
+
+    os.makedirs(folder)
+    with open(os.path.join(folder, "config.json"), "w") as f:
+        json.dump({"config": {"task": "cartpole-swingup", "agent": "cfc-zp-det"},
+                   "agent_config": {"model": {"hidden_size": 16}}}, f)
+    fields = ["env_step", "seed", "episode", "return"] + (["effective_rank"] if rank_column else [])
+    with open(os.path.join(folder, "eval.csv"), "w", newline="") as f:
+        writer = csv.DictWriter(f, fields, extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def test_ranks_only_report_pools_seeds_from_eval_csv_without_a_checkpoint(tmp_path):
+    rng = np.random.default_rng(5)
+    rows = [{"env_step": step, "seed": seed, "episode": ep, "return": 1.0, "effective_rank": rng.uniform(1, 16)}
+            for step in (10_000, 20_000) for seed in range(3) for ep in range(4)]
+    run = str(tmp_path / "run")
+    _rank_run(run, rows)
+    assert report.main([run, "--ranks-only"]) == 0
+    got = list(csv.DictReader(open(os.path.join(run, "analysis", "effective_rank.csv"))))
+    assert [int(r["env_step"]) for r in got] == [10_000, 20_000]
+    for r in got:
+        values = np.array([row["effective_rank"] for row in rows if row["env_step"] == int(r["env_step"])])
+        assert int(r["episodes"]) == 12 and int(r["latent_dim"]) == 16
+        np.testing.assert_allclose([float(r["effective_rank"]), float(r["std"])], [values.mean(), values.std()],
+                                   rtol=1e-6)
+    assert os.path.getsize(os.path.join(run, "analysis", "effective_rank.png")) > 0
+    out = str(tmp_path / "seed1")
+    assert report.main([run, "--ranks-only", "--seed-index", "1", "--out", out]) == 0
+    one = list(csv.DictReader(open(os.path.join(out, "effective_rank.csv"))))
+    seed1 = [row["effective_rank"] for row in rows if row["seed"] == 1 and row["env_step"] == 10_000]
+    assert int(one[0]["episodes"]) == 4
+    np.testing.assert_allclose(float(one[0]["effective_rank"]), np.mean(seed1), rtol=1e-6)
+
+
+def test_ranks_only_report_names_a_run_without_logged_ranks(tmp_path, capsys):
+    run = str(tmp_path / "old")
+    _rank_run(run, [{"env_step": 10_000, "seed": 0, "episode": 0, "return": 3.0}], rank_column=False)
+    assert report.main([run, "--ranks-only"]) != 0
+    assert "no effective_rank column" in capsys.readouterr().err

@@ -128,9 +128,12 @@ def plot_umap(path: str, latent: np.ndarray, states: np.ndarray, velocities: np.
     plt.close(fig)
 
 
-def plot_series(path: str, x: list[float], y: list[float], yerr: list[float], xlabel: str, ylabel: str) -> None:
+def plot_series(path: str, x: list[float], y: list[float], yerr: list[float], xlabel: str, ylabel: str,
+                title: str | None = None) -> None:
     plt, fig, axes = _figure(1, 1, size=4.0)
     axes[0, 0].errorbar(x, y, yerr=yerr, marker="o")
+    if title:
+        axes[0, 0].set_title(title, fontsize=9)
     axes[0, 0].set_xlabel(xlabel)
     axes[0, 0].set_ylabel(ylabel)
     fig.tight_layout()
@@ -180,15 +183,40 @@ def effective_ranks(run: str, steps: list[int], episodes: int, seed_index: int =
     return rows
 
 
-def ranks_from_eval(run: str, seed_index: int, latent_dim: int) -> list[dict]:
+def ranks_from_eval(run: str, seed_index: int | None, latent_dim: int) -> list[dict]:
     """:func:`effective_ranks`' rows from the trainer's evaluations (eval.csv's ``effective_rank`` of seed
-    ``seed_index``, mean ± std over the episodes of each evaluation); [] when the run did not log it."""
+    ``seed_index``, or of every seed pooled when None: mean ± std over the episodes of each evaluation); []
+    when the run did not log it."""
     from lnnmpc.train.report import eval_ranks
 
-    ranks = eval_ranks(runfolder.read_csv(os.path.join(run, "eval.csv")))
+    pooled: dict[int, list[float]] = {}
+    for (seed, step), values in eval_ranks(runfolder.read_csv(os.path.join(run, "eval.csv"))).items():
+        if seed_index is None or seed == seed_index:
+            pooled.setdefault(step, []).extend(values)
     return [{"env_step": step, "effective_rank": float(np.mean(values)), "std": float(np.std(values)),
-             "episodes": len(values), "latent_dim": latent_dim}
-            for (seed, step), values in sorted(ranks.items()) if seed == seed_index]
+             "episodes": len(values), "latent_dim": latent_dim} for step, values in sorted(pooled.items())]
+
+
+def write_rank_history(run: str, out: str | None = None, seed_index: int | None = None) -> str:
+    """Effective rank over training (Figures 5.11–5.12) from eval.csv alone (no checkpoint needed, so it works
+    on a results folder): ``effective_rank.csv`` + ``effective_rank.png`` in ``out`` (default
+    ``<run>/analysis``); seed ``seed_index``, or all seeds' episodes pooled. Returns the folder."""
+    config = runfolder.read_config(run)
+    model = config["agent_config"]["model"]
+    latent_dim = model.get("hidden_size", model.get("latent_dim"))
+    rows = ranks_from_eval(run, seed_index, latent_dim)
+    if not rows:
+        raise ValueError(f"{os.path.join(run, 'eval.csv')} has no effective_rank column (the run predates it); "
+                         "run the full report on its checkpoints instead")
+    out = out or os.path.join(run, "analysis")
+    os.makedirs(out, exist_ok=True)
+    write_csv(os.path.join(out, "effective_rank.csv"), rows)
+    seeds = "all seeds" if seed_index is None else f"seed {seed_index}"
+    plot_series(os.path.join(out, "effective_rank.png"), [r["env_step"] for r in rows],
+                [r["effective_rank"] for r in rows], [r["std"] for r in rows], "environment steps",
+                f"effective rank of Z ({latent_dim} units)",
+                title=f"{config['config']['task']} {config['config']['agent']}, {seeds}")
+    return out
 
 
 def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out: str | None = None,
@@ -249,17 +277,24 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("run", help="a run folder")
     p.add_argument("--checkpoint", type=int, default=None, help="env step of a checkpoint (default: newest)")
     p.add_argument("--episodes", type=int, default=10)
-    p.add_argument("--seed-index", type=int, default=0, help="which of the run's seeds to analyse")
+    p.add_argument("--seed-index", type=int, default=None,
+                   help="which of the run's seeds to analyse (default 0; --ranks-only: all seeds pooled)")
     p.add_argument("--k", type=int, default=10, help="rollout length of the k-step prediction error")
     p.add_argument("--alpha", type=float, default=1.0, help="ridge regularisation")
     p.add_argument("--length", type=int, default=None, help="agent steps per episode (default: whole episodes)")
     p.add_argument("--no-umap", action="store_true", help="skip the UMAP figures")
     p.add_argument("--out", default=None, help="output folder (default <run>/analysis/<step>)")
+    p.add_argument("--ranks-only", action="store_true",
+                   help="only the effective rank over training, from eval.csv (no checkpoint needed; all seeds "
+                        "pooled unless --seed-index is given; default output <run>/analysis)")
     args = p.parse_args(argv)
     from lnnmpc.train.config import command_status
 
+    if args.ranks_only:
+        return command_status(lambda: "wrote " + write_rank_history(args.run, args.out, args.seed_index),
+                              errors=(ValueError,))
     return command_status(lambda: "wrote " + analyse(
-        args.run, checkpoint=args.checkpoint, episodes=args.episodes, out=args.out, seed_index=args.seed_index,
+        args.run, checkpoint=args.checkpoint, episodes=args.episodes, out=args.out, seed_index=args.seed_index or 0,
         k=args.k, alpha=args.alpha, use_umap=not args.no_umap, length=args.length), errors=(ValueError,))
 
 
