@@ -99,6 +99,23 @@ def test_rerun_skips_finished_runs_and_resumes_the_others(tmp_path, monkeypatch)
     assert [o for o, _ in run.missing_evaluations(specs[0], options)] == ["noise=0.1", "noise=0.3"]
 
 
+def test_tables_list_every_agent_whose_run_exists_besides_the_requested_ones(tmp_path):
+    """Two studies of one table run side by side (``--agents tdmpc2`` and ``--agents cfc-zp-det``): whichever
+    aggregates last still lists both agents' cells, and agents with no run folder are left out."""
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=50_000, agents=("cfc-zp-det",))
+    other = grid.expand(grid.get_study("table5_5"), grid.GridOptions(runs_dir=str(tmp_path), steps=50_000,
+                                                                      agents=("tdmpc2",)))[0]
+    _fake_run(other.folder, 50_000, returns=[[10.0, 30.0]], eval_name="mjx-noise0.1-50000.csv")
+    run.run_study("table5_5", options, out=str(tmp_path / "out"), train=False, evaluate=False)
+    with open(tmp_path / "out" / "table5_5.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert sorted({r["agent"] for r in rows}) == ["cfc-zp-det", "tdmpc2"]
+    measured = [r for r in rows if r["agent"] == "tdmpc2" and r["eval_obs"] == "noise0.1"]
+    assert len(measured) == 1 and float(measured[0]["mean"]) == 20.0
+    assert all(r["mean"] == "" for r in rows if r["agent"] == "cfc-zp-det")
+    assert not [p for p in os.listdir(tmp_path / "out") if p.endswith(".tmp")]
+
+
 def test_dry_run_lists_the_grid(tmp_path, capsys):
     assert run.main(["fig5_18", "--dry-run", "--runs-dir", str(tmp_path), "--seeds", "2"]) == 0
     out = capsys.readouterr().out.splitlines()

@@ -16,6 +16,7 @@ results are aggregated (:mod:`lnnmpc.experiments.aggregate`) into ``<out>/<NAME>
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 
@@ -64,14 +65,26 @@ def evaluate_run(spec: RunSpec, options: GridOptions) -> int:
 
 
 def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -> tuple[str, str]:
-    """Writes ``<out>/<name>.csv`` and ``<out>/<name>.md``; returns their paths."""
+    """Writes ``<out>/<name>.csv`` and ``<out>/<name>.md`` (each atomically: studies running side by side may
+    aggregate at the same time); returns their paths."""
     study = grid.get_study(name)
     rows = study_rows(study, specs, options.steps, options.backend)
     csv_path, md_path = os.path.join(out, f"{name}.csv"), os.path.join(out, f"{name}.md")
     write_csv(csv_path, rows)
-    with open(md_path, "w") as f:
+    with open(f"{md_path}.tmp", "w") as f:
         f.write(markdown(study, rows))
+    os.replace(f"{md_path}.tmp", md_path)
     return csv_path, md_path
+
+
+def table_specs(name: str, options: GridOptions) -> list[RunSpec]:
+    """The runs a study's tables list: every run of the requested agents (``options.agents``; a missing one shows
+    as "not yet run") and the runs of the study's other agents whose folders exist, so that tables filled by
+    separate ``--agents`` invocations, or by studies running side by side, show every measured cell."""
+    study = grid.get_study(name)
+    requested = set(options.agents or study.agents)
+    every = grid.expand(study, dataclasses.replace(options, agents=None))
+    return [spec for spec in every if spec.agent in requested or os.path.isdir(spec.folder)]
 
 
 def select_conditions(specs: list[RunSpec], tasks: tuple[str, ...] | None, train_obs: str | None) -> list[RunSpec]:
@@ -108,7 +121,7 @@ def run_study(name: str, options: GridOptions, *, out: str = DEFAULT_OUT, dry_ru
             train_run(spec, options.steps)
         if evaluate:
             evaluate_run(spec, options)
-    return [f"wrote {path}" for path in aggregate(name, all_specs, options, out)]
+    return [f"wrote {path}" for path in aggregate(name, table_specs(name, options), options, out)]
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
