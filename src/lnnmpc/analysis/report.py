@@ -210,13 +210,17 @@ def write_rank_history(run: str, out: str | None = None, seed_index: int | None 
                          "run the full report on its checkpoints instead")
     out = out or os.path.join(run, "analysis")
     os.makedirs(out, exist_ok=True)
-    write_csv(os.path.join(out, "effective_rank.csv"), rows)
     seeds = "all seeds" if seed_index is None else f"seed {seed_index}"
+    write_ranks(out, rows, f"{config['config']['task']} {config['config']['agent']}, {seeds}")
+    return out
+
+
+def write_ranks(out: str, rows: list[dict], title: str | None = None) -> None:
+    """``effective_rank.csv`` and ``effective_rank.png`` (mean ± std per evaluation) of rank rows in ``out``."""
+    write_csv(os.path.join(out, "effective_rank.csv"), rows)
     plot_series(os.path.join(out, "effective_rank.png"), [r["env_step"] for r in rows],
                 [r["effective_rank"] for r in rows], [r["std"] for r in rows], "environment steps",
-                f"effective rank of Z ({latent_dim} units)",
-                title=f"{config['config']['task']} {config['config']['agent']}, {seeds}")
-    return out
+                f"effective rank of Z ({rows[0]['latent_dim']} units)" if rows else "effective rank of Z", title)
 
 
 def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out: str | None = None,
@@ -265,10 +269,7 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
     # Last: without the trainer's logged ranks it rolls out every kept checkpoint (the slowest part).
     ranks = ranks_from_eval(run, seed_index, rec["latent"].shape[-1]) or effective_ranks(
         run, all_steps(run), episodes, seed_index, {policy.checkpoint: rec["latent"]}, length, policy)
-    write_csv(os.path.join(out, "effective_rank.csv"), ranks)
-    plot_series(os.path.join(out, "effective_rank.png"), [r["env_step"] for r in ranks],
-                [r["effective_rank"] for r in ranks], [r["std"] for r in ranks], "environment steps",
-                "effective rank of Z")
+    write_ranks(out, ranks, f"{config.task} {config.agent}, seed {seed_index}")
     return out
 
 
