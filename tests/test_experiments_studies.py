@@ -167,6 +167,43 @@ def test_device_batch_check_validates_every_job_line(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["jobs.txt"]  # nothing written beside it
 
 
+def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
+    """``ingest_batch.sh``: a device batch's results.tar.gz becomes study-runs/ folders, their effective-rank
+    figures and every agent's row of the study's table (the job line's --agents dropped)."""
+    import json
+    import subprocess
+    import sys
+    import tarfile
+
+    batch = tmp_path / "batch"
+    run_dir = batch / "experiments" / "acrobot-swingup" / "tdmpc2" / "noise0.1-seeds1"
+    _fake_run(str(run_dir), 50_000, checkpoint=False, returns=[[10.0, 30.0]], eval_name="mjx-noise0.1-50000.csv")
+    (run_dir / "config.json").write_text(json.dumps({"config": {"task": "acrobot-swingup", "agent": "tdmpc2"},
+                                                     "agent_config": {"model": {"latent_dim": 8}}}))
+    _write(str(run_dir / "eval.csv"), [{"env_step": 50_000, "seed": 0, "episode": e, "return": 1.0,
+                                        "effective_rank": rank} for e, rank in enumerate((3.0, 5.0))])
+    (batch / "plain-run").mkdir()
+    (batch / "plain-run" / "config.json").write_text("{}")
+    (batch / "commands.txt").write_text("t55 (GPU 0): experiment table5_5 --agents tdmpc2 --seeds 1 --steps 50000\n")
+    with tarfile.open(tmp_path / "results.tar.gz", "w:gz") as tar:
+        tar.add(batch, arcname=".")
+    work = tmp_path / "work"
+    work.mkdir()
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "ingest_batch.sh")
+    result = subprocess.run(["bash", script, str(tmp_path / "results.tar.gz")], capture_output=True, text=True,
+                            timeout=300, cwd=work,
+                            env={**os.environ, "PYTHON": sys.executable, "JAX_PLATFORMS": "cpu"})
+    assert result.returncode == 0, result.stderr
+    filed = work / "experiments" / "results" / "study-runs" / "acrobot-swingup" / "tdmpc2" / "noise0.1-seeds1"
+    with open(filed / "analysis" / "effective_rank.csv", newline="") as f:
+        ranks = list(csv.DictReader(f))
+    assert [(r["env_step"], float(r["effective_rank"]), r["latent_dim"]) for r in ranks] == [("50000", 4.0, "8")]
+    table = (work / "experiments" / "results" / "studies" / "table5_5.md").read_text()
+    assert "| acrobot-swingup | noise0.1 | noise0.1 | tdmpc2 | 50,000 | 1 × 2 | 20.0 ± 10.0 |" in table
+    assert table.count("| cfc-zp-det | not yet run |") == 3 and table.count("not yet run") == 6 * 3 + 2
+    assert "plain run (file it by hand): runs/batch/plain-run" in result.stdout
+
+
 def test_summarize_against_hand_computation():
     returns = np.array([[100.0, 200.0, 300.0], [400.0, 500.0, 600.0]])
     s = summarize(returns)

@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Files a device batch's results here, on the CPU, as soon as a `device_batch.sh` report has come back:
+#
+#   experiments/scripts/ingest_batch.sh RESULTS_TAR_GZ
+#
+# - every study run folder of the batch (runs/batch/experiments/<task>/<agent>/<condition>, no checkpoints) is
+#   copied into experiments/results/study-runs/, the one runs-dir that every committed study table is built from
+#   (a newer copy of a run replaces the older one);
+# - for each of them whose eval.csv logged the effective rank: <run>/analysis/effective_rank.{csv,png}
+#   (`lnnmpc.analysis.report --ranks-only`);
+# - each study of the batch (its commands.txt) is aggregated again over study-runs/ into
+#   experiments/results/studies/<study>.{csv,md}: the whole table, every agent of the study (the line's --agents
+#   dropped), measured cells from whatever study-runs/ holds, "not yet run" elsewhere;
+# - the batch's plain training runs (runs/batch/<name>/) are listed, to be filed by hand with a README.
+# $PYTHON picks the interpreter (default .venv/bin/python). Commit what it wrote right after.
+set -eu
+tarball=${1:?usage: ingest_batch.sh RESULTS_TAR_GZ}
+python=${PYTHON:-.venv/bin/python}
+runs=experiments/results/study-runs
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+tar -xzf "$tarball" -C "$tmp"
+mkdir -p "$runs"
+if [ -d "$tmp/experiments" ]; then
+    for run in "$tmp"/experiments/*/*/*/; do
+        rel=${run#"$tmp"/experiments/}
+        rel=${rel%/}
+        rm -rf "${runs:?}/$rel"
+        mkdir -p "$runs/$(dirname "$rel")"
+        cp -r "$run" "$runs/$rel"
+        echo "run      $runs/$rel"
+        if head -1 "$runs/$rel/eval.csv" 2>/dev/null | grep -q effective_rank; then
+            "$python" -m lnnmpc.analysis.report "$runs/$rel" --ranks-only 2>&1 | grep -v warp || true
+        fi
+    done
+fi
+if [ -f "$tmp/commands.txt" ]; then
+    sed -n 's/^[^ ]* ([^)]*): experiment //p' "$tmp/commands.txt" \
+        | sed -E 's/ --(agents|tasks|train-obs) [^ ]+//g' | sort -u | while read -r study; do
+        # shellcheck disable=SC2086  # the study's arguments, word-split on purpose
+        "$python" -m lnnmpc.experiments.run $study --aggregate-only --runs-dir "$runs" \
+            --out experiments/results/studies 2>&1 | grep -v warp || true
+    done
+fi
+for run in "$tmp"/*/; do
+    name=$(basename "$run")
+    if [ "$name" != experiments ] && [ "$name" != studies ] && [ -f "$run/config.json" ]; then
+        echo "plain run (file it by hand): runs/batch/$name"
+    fi
+done
