@@ -71,9 +71,10 @@ def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -
     rows = study_rows(study, specs, options.steps, options.backend)
     csv_path, md_path = os.path.join(out, f"{name}.csv"), os.path.join(out, f"{name}.md")
     write_csv(csv_path, rows)
-    with open(f"{md_path}.tmp", "w") as f:
+    tmp = f"{md_path}.{os.getpid()}.tmp"  # per process: two studies may write the same table at once
+    with open(tmp, "w") as f:
         f.write(markdown(study, rows))
-    os.replace(f"{md_path}.tmp", md_path)
+    os.replace(tmp, md_path)
     return csv_path, md_path
 
 

@@ -96,8 +96,8 @@ def append_csv(path: str, rows: list[dict]) -> None:
 
 
 def write_csv(path: str, fields: list[str], rows: list[dict]) -> None:
-    """Writes a whole CSV file atomically (a temporary file renamed over ``path``)."""
-    tmp = f"{path}.tmp"
+    """Writes a whole CSV file atomically (a temporary file of this process renamed over ``path``)."""
+    tmp = f"{path}.{os.getpid()}.tmp"
     with open(tmp, "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
