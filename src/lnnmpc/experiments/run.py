@@ -23,6 +23,7 @@ import sys
 from lnnmpc.experiments import grid
 from lnnmpc.experiments.aggregate import markdown, study_rows, write_csv
 from lnnmpc.experiments.grid import GridOptions, RunSpec
+from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, command_status, parse_obs
 
 DEFAULT_OUT = os.path.join("experiments", "results", "studies")
@@ -71,10 +72,7 @@ def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -
     rows = study_rows(study, specs, options.steps, options.backend)
     csv_path, md_path = os.path.join(out, f"{name}.csv"), os.path.join(out, f"{name}.md")
     write_csv(csv_path, rows)
-    tmp = f"{md_path}.{os.getpid()}.tmp"  # per process: two studies may write the same table at once
-    with open(tmp, "w") as f:
-        f.write(markdown(study, rows))
-    os.replace(tmp, md_path)
+    runfolder.write_text(md_path, markdown(study, rows))
     return csv_path, md_path
 
 

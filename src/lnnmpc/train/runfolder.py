@@ -9,6 +9,7 @@ training that the newest checkpoint continues.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import tempfile
@@ -49,10 +50,8 @@ def check_creatable(folder: str) -> None:
 
 def write_config(run: str, config: TrainConfig, derived: dict) -> None:
     """Writes config.json atomically: ``{"config": TrainConfig fields, **derived}``."""
-    tmp = os.path.join(run, f".{CONFIG_FILE}.tmp")
-    with open(tmp, "w") as f:
-        json.dump({"config": config.to_dict(), **derived}, f, indent=2, default=str)
-    os.replace(tmp, os.path.join(run, CONFIG_FILE))
+    write_text(os.path.join(run, CONFIG_FILE),
+               json.dumps({"config": config.to_dict(), **derived}, indent=2, default=str))
 
 
 def read_config(run: str) -> dict:
@@ -95,14 +94,22 @@ def append_csv(path: str, rows: list[dict]) -> None:
     write_csv(path, fields, rows)
 
 
-def write_csv(path: str, fields: list[str], rows: list[dict]) -> None:
-    """Writes a whole CSV file atomically (a temporary file of this process renamed over ``path``)."""
+def write_text(path: str, text: str) -> None:
+    """Writes a whole file atomically: a temporary file of this process (several processes may write the same
+    file at once, e.g. two studies rebuilding one table) renamed over ``path``."""
     tmp = f"{path}.{os.getpid()}.tmp"
     with open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=fields)
-        writer.writeheader()
-        writer.writerows(rows)
+        f.write(text)
     os.replace(tmp, path)
+
+
+def write_csv(path: str, fields: list[str], rows: list[dict]) -> None:
+    """Writes a whole CSV file atomically (:func:`write_text`)."""
+    buffer = io.StringIO(newline="")
+    writer = csv.DictWriter(buffer, fieldnames=fields)
+    writer.writeheader()
+    writer.writerows(rows)
+    write_text(path, buffer.getvalue())
 
 
 def read_csv(path: str) -> list[dict]:
