@@ -99,6 +99,30 @@ def test_rerun_skips_finished_runs_and_resumes_the_others(tmp_path, monkeypatch)
     assert [o for o, _ in run.missing_evaluations(specs[0], options)] == ["noise=0.1", "noise=0.3"]
 
 
+def test_eval_cadence_applies_to_new_runs_and_existing_runs_keep_their_own(tmp_path, monkeypatch):
+    """``--eval-every`` sets the training-time evaluations of runs a study creates; a folder that exists was
+    created with a cadence the trainer will not resume under another, so the study passes that one on."""
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=50_000, agents=("tdmpc2", "cfc-zp-det"),
+                               eval_every=25_000)
+    old, new = grid.expand(grid.get_study("table5_5"), options)
+    os.makedirs(old.folder)
+    with open(os.path.join(old.folder, "config.json"), "w") as f:
+        f.write('{"config": {"eval_every": 10000}}')
+    old, new = grid.expand(grid.get_study("table5_5"), options)
+    assert (old.config.eval_every, new.config.eval_every) == (10_000, 25_000)
+    assert grid.saved_eval_every(new.folder) is None
+    with open(os.path.join(old.folder, "config.json"), "w") as f:
+        f.write('{"config": {"eval_every": "often"}}')
+    assert grid.saved_eval_every(old.folder) is None  # unreadable: the study's own cadence
+    trained = []
+    monkeypatch.setattr(lnnmpc, "train", lambda config: trained.append(config.eval_every))
+    assert run.main(["table5_5", "--steps", "50000", "--agents", "cfc-zp-det", "--eval-every", "20000",
+                     "--runs-dir", str(tmp_path), "--out", str(tmp_path / "out")]) == 0
+    assert trained == [20_000]
+    with pytest.raises(ConfigError, match="eval_every must be an integer >= 1, got 0"):
+        grid.GridOptions(eval_every=0)
+
+
 def test_tables_list_every_agent_whose_run_exists_besides_the_requested_ones(tmp_path):
     """Two studies of one table run side by side (``--agents tdmpc2`` and ``--agents cfc-zp-det``): whichever
     aggregates last still lists both agents' cells, and agents with no run folder are left out."""

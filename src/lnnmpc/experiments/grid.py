@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import json
 import os
 
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
@@ -78,7 +79,13 @@ class GridOptions:
     """How to run a study: budget and seeds per run, agent subset (None: the study's), environments per seed,
     model size (``tdmpc2`` only), CPU smoke-test sizes, where runs live, and the episodes per seed and backend
     of the study's evaluations (training-time evaluations keep the trainer's 10 episodes, so that changing
-    ``episodes`` never makes a run folder unresumable)."""
+    ``episodes`` never makes a run folder unresumable).
+
+    ``eval_every``: the training-time evaluation cadence of *new* runs (the trainer evaluates at the end of the
+    budget too, which is what the tables read); a run folder that exists keeps the cadence it was created with
+    (:func:`saved_eval_every`), since the trainer refuses to resume under another one. A walker-run evaluation
+    costs ~20–30 s on an H100, 20 of them about a quarter of a 200K run: a sparser cadence is what lets such a
+    run finish inside one 30-minute hold of a lent GPU."""
 
     steps: int = 200_000
     seeds: int = 3
@@ -89,9 +96,10 @@ class GridOptions:
     runs_dir: str = os.path.join("runs", "experiments")
     episodes: int = 10
     backend: str = "mjx"
+    eval_every: int = 10_000
 
     def __post_init__(self):
-        for name in ("steps", "seeds", "envs", "episodes"):
+        for name in ("steps", "seeds", "envs", "episodes", "eval_every"):
             require_int(name, getattr(self, name), 1)
         if self.backend not in BACKENDS:
             raise ConfigError(f"unknown backend {self.backend!r}; known: {', '.join(BACKENDS)}")
@@ -141,9 +149,20 @@ def expand(study: Study, options: GridOptions) -> list[RunSpec]:
             folder = run_folder(options.runs_dir, condition.task, agent, condition.train_obs, options)
             config = TrainConfig(task=condition.task, agent=agent, seeds=options.seeds, steps=options.steps,
                                  envs=options.envs, obs=condition.train_obs, model_size=options.model_size,
-                                 small=options.small, seed_steps=min(5000, options.steps), out=folder)
+                                 small=options.small, seed_steps=min(5000, options.steps), out=folder,
+                                 eval_every=saved_eval_every(folder) or options.eval_every)
             specs.append(RunSpec(study.name, condition, agent, config, study.horizons))
     return specs
+
+
+def saved_eval_every(folder: str) -> int | None:
+    """The evaluation cadence recorded in a run folder's config.json (None: no readable config there)."""
+    try:
+        with open(os.path.join(folder, "config.json")) as f:
+            value = json.load(f)["config"]["eval_every"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 1 else None
 
 
 def checkpoint_steps(folder: str) -> list[int]:
