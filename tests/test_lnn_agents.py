@@ -7,9 +7,11 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 from lnn_helpers import quick_jit, tiny_agent
 
+from lnnmpc.agents import math as M
 from lnnmpc.agents.lnn import LNNTDMPC2
 from lnnmpc.agents.registry import AGENTS, LNN_AGENTS, make_agent
 
@@ -216,3 +218,45 @@ def test_stochastic_prediction_loss_is_the_beta_nll_of_the_predictor(name):
         np.testing.assert_allclose(loss, weighted.mean(1), rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(info["prediction_nll"], nll.mean(1), rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(info["prediction_sigma"], sigma.mean((1, 2)), rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["cfc-zp-det", "cfc-op-det"])
+def test_rollout_losses_are_taken_on_the_planners_own_latents(name):
+    """``rollout_steps`` K = 2: each loss is the mean of depth 0 (the thesis's, on the encoder's latents) and
+    depth 1, the planner's transition T(z_{t-1}, a_{t-1}) at positions 1..H-1, built here by hand from the
+    model's pieces (no dropout: the tiny agents have none)."""
+    one, two = tiny(name), tiny(name, rollout_steps=2)
+    state = quick_jit(one.init)(jax.random.key(3))
+    batch, key, T, H = window(one, seed=4), jax.random.key(5), one.config.burn_in, one.config.horizon
+    loss_one, (_, m1) = quick_jit(one.world_model_loss)(state.params, state.target_q, batch, key)
+    loss_two, (_, m2) = quick_jit(two.world_model_loss)(state.params, state.target_q, batch, key)
+
+    def by_hand(params):
+        cfg, bins = one.config, one.config.model.num_bins
+        apply = lambda *args, **kw: one.model.apply({"params": params}, *args, **kw)
+        zs = one.latents(params, batch)
+        action, reward = batch["action"][T:T + H], batch["reward"][T:T + H]
+        target = zs[1:] if cfg.model.objective == "zp" else batch["obs"][T + 1:]
+        z1 = apply(zs[:H - 1], action[:H - 1], method="transition")  # depth 1 at positions 1..H-1
+        pred = apply(z1, action[1:], method="predict")[0]
+        reward_ce = M.soft_cross_entropy(apply(z1, action[1:], method="reward"), reward[1:], bins, cfg.vmin,
+                                         cfg.vmax)
+        return jnp.mean((pred - target[1:]) ** 2), jnp.mean(reward_ce)
+
+    pred1, reward1 = quick_jit(by_hand)(state.params)
+    np.testing.assert_allclose(float(m2["rollout_prediction_loss"]), float(pred1), rtol=1e-5)
+    np.testing.assert_allclose(float(m2["prediction_loss"]), (float(m1["prediction_loss"]) + float(pred1)) / 2,
+                               rtol=1e-5)
+    np.testing.assert_allclose(float(m2["reward_loss"]), (float(m1["reward_loss"]) + float(reward1)) / 2, rtol=1e-5)
+    assert "rollout_prediction_loss" not in m1 and float(loss_two) != float(loss_one)
+    # The depth-1 losses reach the predictor through the transition that made z1 (gradients through the rollout).
+    only_depth1 = lambda p: two.world_model_loss(p, state.target_q, batch, key)[1][1]["rollout_prediction_loss"]
+    grads = quick_jit(jax.grad(only_depth1))(state.params)
+    assert float(optax.tree.norm(grads["predictor"])) > 0 and float(optax.tree.norm(grads["encoder"])) > 0
+
+
+def test_rollout_steps_are_validated():
+    with pytest.raises(ValueError, match="rollout_steps=0 is invalid; expected an integer >= 1"):
+        tiny("cfc-zp-det", rollout_steps=0)
+    with pytest.raises(ValueError, match=r"rollout_steps \(5\) must be <= horizon \(4\)"):
+        tiny("cfc-zp-det", rollout_steps=5)

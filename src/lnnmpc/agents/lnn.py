@@ -22,6 +22,14 @@ state h_{t−1} the actor held before reading o_t, and a_{t−1} (zeros at an ep
 * reward and Q: TD-MPC2's two-hot soft cross-entropies at z_0..z_{H−1} (the encoder's latents), Q against
   TD(λ) targets (:func:`lnnmpc.agents.returns.lambda_returns`) with bootstrap values
   v_{t+1} = min of 2 random Polyak target heads at (sg(z_{t+1}), π(sg(z_{t+1}))).
+* ``rollout_steps`` K > 1 (this project's extension; K = 1 is the thesis): the same three losses are also taken
+  on the planner's own latents, open loop from every position of the window, as TD-MPC2 takes them on its
+  rollouts. Depth 0 is the encoder's latents z_t; depth k the planner's transition applied k times,
+  ẑ^k_t = T(ẑ^{k−1}_{t−1}, a_{t−1}) (the predictor's mean; OP through the encoder with Δt = 1, Algorithm 5),
+  for t = k..H−1. Depth k ∈ 0..K−1 predicts the next latent / observation of its positions and carries the
+  reward and Q losses of its positions; each loss is the mean over its depths, gradients flow through the
+  rollout. With K = 1 the planner scores action sequences with heads that never saw a predicted latent, and its
+  H_plan = 10 steps go that far off the encoder's latents.
 
 Acting (:meth:`LNNTDMPC2.act`): the encoder reads [o_t, a_{t−1}] with Δt_t, then MPPI plans from h_t. The
 planner's transition (Algorithm 4 / 5) samples the stochastic predictor: ZP rolls ẑ_{t+1} ~ f(z_t, a_t); OP
@@ -74,10 +82,15 @@ class LNNConfig(TDMPC2Config):
     lambda_: float = 0.95
     free_bits: float = -2.0  # floor of the OP-stoch per-step NLL, nats per dimension
     nll_beta: float = 1.0  # β-NLL weight stop_gradient(σ^(2β)) of the stochastic variants' NLL; 0 = plain NLL
+    rollout_steps: int = 1  # K: depths of open-loop model losses (module docstring); 1 = the thesis
 
     def __post_init__(self):
         super().__post_init__()
         check_int_at_least("burn_in", self.burn_in, 0)
+        check_int_at_least("rollout_steps", self.rollout_steps, 1)
+        if self.rollout_steps > self.horizon:
+            raise ValueError(f"rollout_steps ({self.rollout_steps}) must be <= horizon ({self.horizon}): depth k "
+                             "has horizon - k positions in a window")
         if not 0 <= self.lambda_ <= 1:
             raise ValueError(f"lambda_ must be in [0, 1], got {self.lambda_!r}")
         if not 0 <= self.nll_beta <= 1:
@@ -164,30 +177,46 @@ class LNNTDMPC2(TDMPC2):
 
     def world_model_loss(self, params, target_q, batch, key):
         """Scalar loss and (stop-gradient latents (H + 1, B, N), metrics) for a window (module docstring)."""
-        cfg, num_bins = self.config, self.config.model.num_bins
+        cfg = self.config
         T, H = cfg.burn_in, cfg.horizon
         action, reward = batch["action"][T:T + H], batch["reward"][T:T + H]
         k_pi, k_heads, k_drop = jax.random.split(key, 3)
         zs = self.latents(params, batch)
-        z, next_z = zs[:-1], jax.lax.stop_gradient(zs[1:])
+        next_z = jax.lax.stop_gradient(zs[1:])
         next_action = self._policy_sample(params, next_z, k_pi).action
         next_q = self._q_values(params, next_z, next_action, self._two_heads(k_heads), q_params=target_q)
         td_target = jax.lax.stop_gradient(lambda_returns(reward, jnp.min(next_q, axis=0), cfg.gamma, cfg.lambda_))
-
         target = next_z if cfg.model.objective == "zp" else batch["obs"][T + 1:]
-        weights = M.discounted_weights(H, cfg.rho)
+
+        depths, z = [], zs[:-1]  # z: the depth-k latents of positions k..H-1
+        for k in range(cfg.rollout_steps):
+            if k:
+                z = self._apply(params, z[:-1], action[k - 1:-1], method="transition")
+            depths.append(self._depth_losses(params, z, action[k:], reward[k:], td_target[k:], target[k:],
+                                             jax.random.fold_in(k_drop, k) if k else k_drop))
+        losses = {name: sum(d[0][name] for d in depths) / len(depths) for name in depths[0][0]}
+        total = (cfg.consistency_coef * losses["prediction_loss"] + cfg.reward_coef * losses["reward_loss"]
+                 + cfg.value_coef * losses["value_loss"])
+        metrics = {**losses, "total_loss": total, **depths[0][1]}
+        if cfg.rollout_steps > 1:
+            metrics["rollout_prediction_loss"] = depths[-1][0]["prediction_loss"]
+        return total, (jax.lax.stop_gradient(zs), metrics)
+
+    def _depth_losses(self, params, z, action, reward, td_target, target, key):
+        """Prediction, reward and value losses of latents z (n, B, N) of one depth, with their actions (n, B, A),
+        rewards and TD targets (n, B) and prediction targets (n, B, D); each ρ^t-weighted and averaged over the
+        n positions. Returns (losses, per-step diagnostics of the prediction averaged the same way)."""
+        cfg, num_bins, n = self.config, self.config.model.num_bins, z.shape[0]
+        weights = M.discounted_weights(n, cfg.rho)
+        average = lambda per_step: jnp.sum(weights * per_step) / n
         per_step, info = self.prediction_loss(params, z, action, target)
-        prediction = jnp.sum(weights * per_step) / H
         reward_ce = M.soft_cross_entropy(self._apply(params, z, action, method="reward"), reward, num_bins,
                                          cfg.vmin, cfg.vmax).mean(axis=1)
-        q_logits = self._apply(params, z, action, False, method="q", rngs={"dropout": k_drop})
+        q_logits = self._apply(params, z, action, False, method="q", rngs={"dropout": key})
         value_ce = M.soft_cross_entropy(q_logits, td_target[None], num_bins, cfg.vmin, cfg.vmax).mean(axis=2)
-        reward_loss = jnp.sum(weights * reward_ce) / H
-        value_loss = jnp.sum(weights * value_ce.sum(axis=0)) / (H * cfg.model.num_q)
-        total = cfg.consistency_coef * prediction + cfg.reward_coef * reward_loss + cfg.value_coef * value_loss
-        metrics = {"prediction_loss": prediction, "reward_loss": reward_loss, "value_loss": value_loss,
-                   "total_loss": total, **{k: jnp.sum(weights * v) / H for k, v in info.items()}}
-        return total, (jax.lax.stop_gradient(zs), metrics)
+        losses = {"prediction_loss": average(per_step), "reward_loss": average(reward_ce),
+                  "value_loss": jnp.sum(weights * value_ce.sum(axis=0)) / (n * cfg.model.num_q)}
+        return losses, {k: average(v) for k, v in info.items()}
 
     # ------------------------------------------------------------ acting protocol (agents/registry.py)
     @property
