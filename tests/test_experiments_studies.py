@@ -290,3 +290,72 @@ def test_horizon_rows_carry_planner_time(tmp_path):
     assert rows[1]["planner_ms"] == 3.0 and rows[1]["mean"] == 100.0 and rows[0]["mean"] == ""
     assert "| acrobot-swingup | clean | clean | cfc-zp-det | 3 | 200,016 | 1 × 3 | 100.0 ± 81.6 | 0.0 | 3.0 ± " \
            in markdown(study, rows)
+
+
+def _fake_noise_evals(folder, step, means):
+    """Evaluation files of a run at σ = 0.1, 0.2, 0.3 (2 seeds × 2 episodes, returns mean ± 10)."""
+    for sigma, mean in zip((0.1, 0.2, 0.3), means, strict=True):
+        _write(os.path.join(folder, "evals", f"mjx-noise{sigma:g}-{step}.csv"),
+               [{"env_step": step, "seed": s, "episode": e, "return": mean + (10.0 if e else -10.0)}
+                for s in range(2) for e in range(2)])
+
+
+def test_study_figure_series_and_png(tmp_path):
+    """Table 5.5's figure: ours against σ for the measured agents beside the thesis's; nothing measured, no
+    figure; a partial run's step is in its label."""
+    import matplotlib.image
+
+    from lnnmpc.experiments import figures
+
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=50_000, seeds=2)
+    specs = grid.expand(grid.get_study("table5_5"), options)
+    study, out = grid.get_study("table5_5"), str(tmp_path / "fig.png")
+    rows = study_rows(study, specs, options.steps)
+    assert figures.write_study_figure(study, specs, rows, out, options.steps) is None and not os.path.exists(out)
+    _fake_run(specs[1].folder, 40_000)  # cfc-zp-det, stopped at 40K
+    _fake_noise_evals(specs[1].folder, 40_000, (300.0, 200.0, 100.0))
+    rows = study_rows(study, specs, options.steps)
+    series = figures.sweep_series(rows)[("acrobot-swingup", "noise0.1")]
+    assert list(series) == list(study.agents)
+    cfc = series["cfc-zp-det"]
+    assert cfc["sigma"] == [0.1, 0.2, 0.3] and cfc["mean"] == [300.0, 200.0, 100.0] and cfc["std"] == [10.0] * 3
+    assert cfc["thesis"] == [thesis_value("acrobot-swingup", f"noise={s}", "cfc-zp-det").mean for s in (0.1, 0.2, 0.3)]
+    assert cfc["env_step"] == 40_000 and series["tdmpc2"]["env_step"] is None
+    assert np.isnan(series["tdmpc2"]["mean"]).all()
+    assert figures.bar_series(rows) == ([], {})  # every condition of Table 5.5 is a noise sweep
+    assert figures._steps_label(40_000, 50_000) == " (40K)" and figures._steps_label(50_016, 50_000) == ""
+    assert figures.write_study_figure(study, specs, rows, out, options.steps) == out
+    image = matplotlib.image.imread(out)
+    assert image.ndim == 3 and image.shape[0] > 300 and image.shape[1] > 600
+    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+
+
+def test_bar_series_of_single_setting_conditions(tmp_path):
+    from lnnmpc.experiments import figures
+
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=50_000, agents=("tdmpc2",))
+    specs = grid.expand(grid.get_study("table5_4"), options)  # remove_vel (one setting) and the noise sweep
+    _fake_run(specs[0].folder, 50_016, returns=[[190.0, 210.0]], eval_name="mjx-novel-50016.csv")
+    conditions, series = figures.bar_series(study_rows(grid.get_study("table5_4"), specs, options.steps))
+    assert conditions == [("cartpole-swingup", "novel")]
+    assert series == {"tdmpc2": {"mean": [200.0], "std": [10.0], "thesis": [193.22], "env_step": [50_016]}}
+
+
+def test_horizon_figure_reads_every_episode(tmp_path):
+    from lnnmpc.experiments import figures
+
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=50_000, seeds=1)
+    specs = grid.expand(grid.get_study("fig5_19"), options)
+    _fake_run(specs[0].folder, 50_016)
+    for h in (1, 10):
+        _write(grid.eval_file(specs[0].folder, 50_016, "", horizon=h),
+               [{"env_step": 50_016, "seed": 0, "episode": e, "return": 100.0 * h + e, "horizon": h,
+                 "planner_ms": 2.0 * h + e} for e in range(3)])
+    samples = figures.horizon_samples(specs)
+    assert list(samples) == [1, 10]
+    np.testing.assert_array_equal(samples[10][0], [1000.0, 1001.0, 1002.0])
+    np.testing.assert_array_equal(samples[1][1], [2.0, 3.0, 4.0])
+    assert samples[1][2] == 50_016
+    paths = run.aggregate("fig5_19", specs, options, str(tmp_path / "out"))
+    assert [os.path.basename(p) for p in paths] == ["fig5_19.csv", "fig5_19.md", "fig5_19.png"]
+    assert os.path.getsize(paths[2]) > 10_000

@@ -22,6 +22,7 @@ import sys
 
 from lnnmpc.experiments import grid
 from lnnmpc.experiments.aggregate import markdown, study_rows, write_csv
+from lnnmpc.experiments.figures import write_study_figure
 from lnnmpc.experiments.grid import GridOptions, RunSpec
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, command_status, parse_obs
@@ -65,15 +66,17 @@ def evaluate_run(spec: RunSpec, options: GridOptions) -> int:
     return len(todo)
 
 
-def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -> tuple[str, str]:
-    """Writes ``<out>/<name>.csv`` and ``<out>/<name>.md`` (each atomically: studies running side by side may
+def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -> tuple[str, ...]:
+    """Writes ``<out>/<name>.csv``, ``<out>/<name>.md`` and, once something is measured, the figure
+    ``<out>/<name>.png`` (:mod:`lnnmpc.experiments.figures`), each atomically (studies running side by side may
     aggregate at the same time); returns their paths."""
     study = grid.get_study(name)
     rows = study_rows(study, specs, options.steps, options.backend)
     csv_path, md_path = os.path.join(out, f"{name}.csv"), os.path.join(out, f"{name}.md")
     write_csv(csv_path, rows)
     runfolder.write_text(md_path, markdown(study, rows))
-    return csv_path, md_path
+    png = write_study_figure(study, specs, rows, os.path.join(out, f"{name}.png"), options.steps, options.backend)
+    return (csv_path, md_path) + ((png,) if png else ())
 
 
 def table_specs(name: str, options: GridOptions) -> list[RunSpec]:

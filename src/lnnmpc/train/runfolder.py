@@ -14,6 +14,8 @@ import json
 import os
 import tempfile
 import time
+from collections.abc import Callable
+from typing import IO
 
 from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag
 
@@ -94,13 +96,18 @@ def append_csv(path: str, rows: list[dict]) -> None:
     write_csv(path, fields, rows)
 
 
-def write_text(path: str, text: str) -> None:
-    """Writes a whole file atomically: a temporary file of this process (several processes may write the same
-    file at once, e.g. two studies rebuilding one table) renamed over ``path``."""
+def write_atomic(path: str, write: Callable[[IO], None], binary: bool = False) -> None:
+    """Writes a whole file atomically: ``write(f)`` fills a temporary file of this process (several processes
+    may write the same file at once, e.g. two studies rebuilding one table), which is renamed over ``path``."""
     tmp = f"{path}.{os.getpid()}.tmp"
-    with open(tmp, "w", newline="") as f:
-        f.write(text)
+    with open(tmp, "wb") if binary else open(tmp, "w", newline="") as f:
+        write(f)
     os.replace(tmp, path)
+
+
+def write_text(path: str, text: str) -> None:
+    """Writes ``text`` to ``path`` atomically (:func:`write_atomic`)."""
+    write_atomic(path, lambda f: f.write(text))
 
 
 def write_csv(path: str, fields: list[str], rows: list[dict]) -> None:
