@@ -130,9 +130,9 @@ def test_resuming_with_changed_agent_hyperparameters_is_refused(tmp_path):
 
 
 def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_path):
-    """A checkpoint from before nll_beta, joint_grad_clip and flat_optimizer existed and with the old free-bits
-    default: a det variant resumes with the old per-group clipping and per-leaf Adam (it uses neither NLL field);
-    an OP-stoch run is refused with the exact --set flags, and resumes once they are given."""
+    """A checkpoint from before nll_beta, joint_grad_clip, flat_optimizer and rollout_steps existed and with the
+    old free-bits default: a det variant resumes with the old per-group clipping and per-leaf Adam (it uses neither
+    NLL field); an OP-stoch run is refused with the exact --set flags, and resumes once they are given."""
     from lnnmpc.agents.registry import make_agent
     from lnnmpc.train.compat import agent_config_json, check_agent_config
 
@@ -140,7 +140,7 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
 
     def saved_like(agent_config):
         old = agent_config_json(agent_config)
-        del old["nll_beta"], old["joint_grad_clip"], old["flat_optimizer"]  # the fields did not exist
+        del old["nll_beta"], old["joint_grad_clip"], old["flat_optimizer"], old["rollout_steps"]  # did not exist
         old["free_bits"] = -1.0
         runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": old})
 
@@ -163,6 +163,9 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
     zp = make_agent("cfc-zp-stoch", 5, 1, overrides={"nll_beta": 0, **old_clip}).config
     saved_like(zp)
     check_agent_config(run, zp)  # ZP does not use free bits
+    with pytest.raises(ConfigError, match="rollout_steps: checkpoint has 1, now 3"):  # older runs: the thesis's 1
+        check_agent_config(run, make_agent("cfc-zp-stoch", 5, 1, overrides={
+            "nll_beta": 0, "rollout_steps": 3, **old_clip}).config)
     # A TD-MPC2 checkpoint from before the SimNorm LayerNorm and the joint clip: its layout and clipping restored.
     old = agent_config_json(make_agent("tdmpc2", 5, 1).config)
     del old["joint_grad_clip"], old["model"]["simnorm_layer_norm"], old["flat_optimizer"]
