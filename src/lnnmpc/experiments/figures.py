@@ -129,8 +129,9 @@ def write_study_figure(study: Study, specs: list[RunSpec], rows: list[dict], out
         fig.suptitle(f"{study.source} ({study.name}): returns and planning time per horizon", fontsize=10)
     else:
         fig = _draw_tables(plt, sweep_series(rows), bar_series(rows), budget)
-        fig.suptitle(f"{study.source} ({study.name}): ours (solid), the thesis's (dashed / black ticks)",
-                     fontsize=10)
+        thesis = any(r["thesis_mean"] != "" for r in rows if _measured(r))
+        fig.suptitle(f"{study.source} ({study.name}): " + ("ours (solid), the thesis's (dashed / black ticks)"
+                     if thesis else "ours (the thesis prints no numbers for it)"), fontsize=10)
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     runfolder.write_atomic(out, lambda f: fig.savefig(f, format="png", dpi=110), binary=True)
@@ -161,15 +162,15 @@ def _draw_tables(plt, sweeps: dict, bars: tuple[list, dict], budget: int):
         ax, width, x = axes[-1], 0.8 / len(series), np.arange(len(conditions))
         for i, (agent, s) in enumerate(series.items()):
             pos = x - 0.4 + width * (i + 0.5)
-            ax.bar(pos, np.nan_to_num(s["mean"]), width, yerr=np.nan_to_num(s["std"]), capsize=2, label=agent,
-                   color=colours.get(agent, "k"))
+            ax.bar(pos, s["mean"], width, yerr=s["std"], capsize=2, label=agent, color=colours.get(agent, "k"))
             ax.scatter(pos, s["thesis"], color="k", marker="_", s=300, linewidths=2.5, zorder=3)
             for p, step in zip(pos, s["env_step"], strict=True):
                 if step is not None and step < budget:
                     ax.text(p, 10, f"{step / 1000:.0f}K", rotation=90, ha="center", va="bottom", fontsize=7,
                             color="w")
         ax.set_xticks(x, [f"{t}\n{tr}" for t, tr in conditions], fontsize=7)
-        ax.set(ylabel="return", ylim=(0, 1000), title="bars: ours (K: steps reached if short of the budget)")
+        ax.set(ylabel="return", ylim=(0, 1000), xlim=(-0.6, len(conditions) - 0.4),
+               title="bars: ours (K: steps reached if short of the budget)")
         ax.legend(fontsize=7)
     return fig
 
