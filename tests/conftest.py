@@ -1,9 +1,23 @@
 """Shared test setup: no OpenGL for dm_control (CI has no display), small CPU-only JAX, heaviest files first."""
 
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("MUJOCO_GL", "disable")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+# One XLA compilation cache for the whole test session, made by the controlling process and inherited by the
+# xdist workers and the trainer subprocesses: a program that several files compile alike is compiled once, and
+# the suite neither reads nor fills the user's cache (~/.cache/lnnmpc/xla), so its time does not depend on what
+# ran on the machine before. Removed when the session ends.
+if "LNNMPC_TEST_XLA_CACHE" not in os.environ:
+    os.environ["LNNMPC_TEST_XLA_CACHE"] = tempfile.mkdtemp(prefix="lnnmpc-test-xla-")
+    _OWNS_CACHE = True
+else:
+    _OWNS_CACHE = False
+os.environ["JAX_COMPILATION_CACHE_DIR"] = os.environ["LNNMPC_TEST_XLA_CACHE"]
+os.environ["LNNMPC_COMPILE_CACHE"] = os.environ["LNNMPC_TEST_XLA_CACHE"]
 
 # Test files by measured cost on a 2-core CPU (compile-bound), most expensive first. With `--dist loadfile`
 # xdist hands out whole files; in collection order (see pytest_configure) the long files start at once on both
@@ -19,6 +33,12 @@ def pytest_configure(config):
     """Keeps the collection order for xdist's file scheduling (pytest-xdist >= 3.8 reorders unless told not to)."""
     if hasattr(config.option, "loadscopereorder"):
         config.option.loadscopereorder = False
+
+
+def pytest_unconfigure(config):
+    """The process that made the session's compilation cache removes it."""
+    if _OWNS_CACHE:
+        shutil.rmtree(os.environ["LNNMPC_TEST_XLA_CACHE"], ignore_errors=True)
 
 
 def _file_rank(item) -> int:
