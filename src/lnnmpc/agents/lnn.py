@@ -215,6 +215,7 @@ class LNNTDMPC2(TDMPC2):
         q_logits = self._apply(params, z, action, False, method="q", rngs={"dropout": key})
         value_ce = M.soft_cross_entropy(q_logits, td_target[None], num_bins, cfg.vmin, cfg.vmax).mean(axis=2)
         losses = {"prediction_loss": average(per_step), "reward_loss": average(reward_ce),
+                  # one division, as before rollout_steps existed: K = 1 stays bit-for-bit the old loss
                   "value_loss": jnp.sum(weights * value_ce.sum(axis=0)) / (n * cfg.model.num_q)}
         return losses, {k: average(v) for k, v in info.items()}
 

@@ -54,6 +54,12 @@ def _conditions(rows: list[dict]) -> dict[tuple[str, str], list[dict]]:
     return groups
 
 
+def _cells(rows: list[dict | None]) -> dict[str, list[float]]:
+    """Ours (mean, std) and the thesis's mean of each row, NaN for a missing row or value."""
+    return {key: [_float(r[field]) if r else float("nan") for r in rows]
+            for key, field in (("mean", "mean"), ("std", "std"), ("thesis", "thesis_mean"))}
+
+
 def sweep_series(rows: list[dict]) -> dict[tuple[str, str], dict[str, dict]]:
     """{(task, train tag): {agent: {"sigma", "mean", "std", "thesis", "env_step"}}} for every condition with more
     than one evaluation noise level. Lists follow increasing σ; ``mean``/``std`` are NaN where not measured,
@@ -69,11 +75,7 @@ def sweep_series(rows: list[dict]) -> dict[tuple[str, str], dict[str, dict]]:
             by_sigma = {_noise(r["eval_obs"]): r for r in group if r["agent"] == agent}
             points = [by_sigma.get(s) for s in levels]
             steps = [int(p["env_step"]) for p in points if p is not None and _measured(p)]
-            out[condition][agent] = {
-                "sigma": levels, "mean": [_float(p["mean"]) if p else float("nan") for p in points],
-                "std": [_float(p["std"]) if p else float("nan") for p in points],
-                "thesis": [_float(p["thesis_mean"]) if p else float("nan") for p in points],
-                "env_step": min(steps) if steps else None}
+            out[condition][agent] = {"sigma": levels, **_cells(points), "env_step": min(steps) if steps else None}
     return out
 
 
@@ -85,11 +87,8 @@ def bar_series(rows: list[dict]) -> tuple[list[tuple[str, str]], dict[str, dict]
     series = {}
     for agent in _agents([r for g in groups.values() for r in g]):
         cells = [next((r for r in groups[c] if r["agent"] == agent), None) for c in conditions]
-        series[agent] = {
-            "mean": [_float(r["mean"]) if r else float("nan") for r in cells],
-            "std": [_float(r["std"]) if r else float("nan") for r in cells],
-            "thesis": [_float(r["thesis_mean"]) if r else float("nan") for r in cells],
-            "env_step": [int(r["env_step"]) if r and _measured(r) else None for r in cells]}
+        series[agent] = {**_cells(cells), "env_step": [int(r["env_step"]) if r and _measured(r) else None
+                                                       for r in cells]}
     return conditions, series
 
 

@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 import os
 
+from lnnmpc.train import runfolder
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
 
 STATUSES = ("new", "partial", "finished")
@@ -158,9 +158,8 @@ def expand(study: Study, options: GridOptions) -> list[RunSpec]:
 def saved_eval_every(folder: str) -> int | None:
     """The evaluation cadence recorded in a run folder's config.json (None: no readable config there)."""
     try:
-        with open(os.path.join(folder, "config.json")) as f:
-            value = json.load(f)["config"]["eval_every"]
-    except (OSError, ValueError, KeyError, TypeError):
+        value = runfolder.read_config(folder)["config"]["eval_every"]
+    except (ConfigError, OSError, ValueError, KeyError, TypeError):
         return None
     return value if isinstance(value, int) and not isinstance(value, bool) and value >= 1 else None
 
