@@ -46,8 +46,11 @@ SMALL_LNN_TRAINING = {"horizon": 8, "burn_in": 4}
 # writes them into the run's recorded overrides, so resuming and evaluating old runs is unaffected). Walker's
 # joint velocities reach ±50 and saturate the CfC's input layer: with symlog inputs cfc-zp-det scored
 # 318 ± 51 at 76,848 steps (3 seeds, H100) where the raw inputs gave 42 ± 4 at 52,896
-# (experiments/results/cfc-zp-det-walker-run-symlog-h100-3seeds-partial).
-LNN_TASK_DEFAULTS = {"walker": {"input_transform": "symlog"}}
+# (experiments/results/cfc-zp-det-walker-run-symlog-h100-3seeds-partial). One-step TD targets and the model
+# losses on the planner's own 1-2 step rollouts (not the thesis's TD(0.95) and encoder latents only) took
+# cfc-zp-det from 89.6 (earlier 232.5) to 540.2 at 64,896 steps (2 seeds, H100; TD-MPC2 687.7):
+# experiments/results/cfc-walker-ablations-h100-60k. Measured on walker only, so other domains keep the thesis's.
+LNN_TASK_DEFAULTS = {"walker": {"input_transform": "symlog", "lambda_": 0.0, "rollout_steps": 3}}
 
 
 def task_default_overrides(name: str, task: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
