@@ -29,8 +29,11 @@ def cache(tmp_path_factory):
 
 
 def _env(cache: str, **extra) -> dict:
+    """The subprocess's environment: the test session's XLA flags (conftest) plus ``extra``'s, nothing else's."""
+    flags = f"{os.environ.get('LNNMPC_TEST_XLA_FLAGS', '')} {extra.pop('XLA_FLAGS', '')}".strip()
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    return {**env, "JAX_PLATFORMS": "cpu", "LNNMPC_COMPILE_CACHE": cache, "MUJOCO_GL": "disable", **extra}
+    return {**env, "JAX_PLATFORMS": "cpu", "LNNMPC_COMPILE_CACHE": cache, "MUJOCO_GL": "disable", "XLA_FLAGS": flags,
+            **extra}
 
 
 def _cli(*args: str) -> list[str]:
