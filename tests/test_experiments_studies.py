@@ -140,6 +140,32 @@ def test_tables_list_every_agent_whose_run_exists_besides_the_requested_ones(tmp
     assert not [p for p in os.listdir(tmp_path / "out") if p.endswith(".tmp")]
 
 
+def test_tables_find_runs_made_with_other_environments_per_seed(tmp_path):
+    """Table 5.3 filled by a walker run with 16 environments per seed and a cartpole run with 8: aggregating with
+    ``--envs 8`` still lists the walker cell (from the sibling evaluated the furthest), and a different seed
+    count or corruption is never taken for the same run."""
+    runs = tmp_path / "runs"
+    walker = runs / "walker-run" / "cfc-zp-det"
+    _fake_run(str(walker / "clean-seeds3-envs16"), 140_000, returns=[[600.0, 700.0]], eval_name="mjx-clean-140000.csv")
+    _fake_run(str(walker / "clean-seeds3-envs4"), 60_000, returns=[[100.0, 100.0]], eval_name="mjx-clean-60000.csv")
+    _fake_run(str(walker / "clean-seeds2-envs16"), 190_000, returns=[[1.0, 1.0]], eval_name="mjx-clean-190000.csv")
+    _fake_run(str(walker / "noise0.1-seeds3-envs16"), 190_000, returns=[[2.0, 2.0]], eval_name="mjx-clean-190000.csv")
+    sparse = runs / "cartpole-swingup-sparse" / "tdmpc2" / "clean-seeds3-envs8"
+    _fake_run(str(sparse), 200_000, returns=[[800.0, 820.0]], eval_name="mjx-clean-200000.csv")
+    assert grid.measured_elsewhere(str(walker / "clean-seeds3-envs8")) == (str(walker / "clean-seeds3-envs16"), 16)
+    assert grid.measured_elsewhere(str(walker / "clean-seeds3")) == (str(walker / "clean-seeds3-envs16"), 16)
+    assert grid.measured_elsewhere(str(walker / "clean-seeds4-envs8")) is None
+    assert grid.measured_elsewhere(str(runs / "acrobot-swingup" / "tdmpc2" / "clean-seeds3-envs8")) is None
+    options = grid.GridOptions(runs_dir=str(runs), envs=8, agents=("tdmpc2",))
+    run.run_study("table5_3", options, out=str(tmp_path / "out"), train=False, evaluate=False)
+    with open(tmp_path / "out" / "table5_3.csv", newline="") as f:
+        rows = {(r["task"], r["agent"]): r for r in csv.DictReader(f)}
+    assert float(rows["walker-run", "cfc-zp-det"]["mean"]) == 650.0
+    assert rows["walker-run", "cfc-zp-det"]["run"].endswith("clean-seeds3-envs16")
+    assert float(rows["cartpole-swingup-sparse", "tdmpc2"]["mean"]) == 810.0
+    assert rows["walker-run", "tdmpc2"]["mean"] == ""
+
+
 def test_dry_run_lists_the_grid(tmp_path, capsys):
     assert run.main(["fig5_18", "--dry-run", "--runs-dir", str(tmp_path), "--seeds", "2"]) == 0
     out = capsys.readouterr().out.splitlines()

@@ -18,6 +18,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import os
+import re
 
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
@@ -134,6 +135,25 @@ def run_folder(runs_dir: str, task: str, agent: str, train_obs: str, options: Gr
     name += (f"-envs{options.envs}" if options.envs != 1 else "") + ("-size1" if options.model_size == 1 else "")
     name += "-small" if options.small else ""
     return os.path.join(runs_dir, task, agent, name)
+
+
+def measured_elsewhere(folder: str) -> tuple[str, int] | None:
+    """A run of the same condition as ``folder`` (which does not exist) that differs only in its environments
+    per seed, and that count: of the sibling folders ``<tag>-seeds<N>[-envs<M>]<suffix>``, the one evaluated the
+    furthest (None: none has evaluations). A table filled by runs of several layouts (walker with 16 environments
+    per seed, cartpole with 8) is aggregated with one ``--envs``, and still lists every measured cell."""
+    parent, name = os.path.split(folder)
+    match = re.fullmatch(r"(.+-seeds\d+)(?:-envs\d+)?(.*)", name)
+    if match is None or not os.path.isdir(parent):
+        return None
+    pattern = re.compile(re.escape(match[1]) + r"(?:-envs(\d+))?" + re.escape(match[2]))
+    found = [(last_eval_step(os.path.join(parent, other)), other, int(m[1] or 1))
+             for other in sorted(os.listdir(parent)) if (m := pattern.fullmatch(other)) and other != name]
+    found = [item for item in found if item[0] is not None]
+    if not found:
+        return None
+    _, other, envs = max(found)
+    return os.path.join(parent, other), envs
 
 
 def expand(study: Study, options: GridOptions) -> list[RunSpec]:

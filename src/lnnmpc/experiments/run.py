@@ -82,11 +82,19 @@ def aggregate(name: str, specs: list[RunSpec], options: GridOptions, out: str) -
 def table_specs(name: str, options: GridOptions) -> list[RunSpec]:
     """The runs a study's tables list: every run of the requested agents (``options.agents``; a missing one shows
     as "not yet run") and the runs of the study's other agents whose folders exist, so that tables filled by
-    separate ``--agents`` invocations, or by studies running side by side, show every measured cell."""
+    separate ``--agents`` invocations, or by studies running side by side, show every measured cell. A run whose
+    folder for ``options.envs`` does not exist is looked up with other environments per seed
+    (:func:`grid.measured_elsewhere`)."""
     study = grid.get_study(name)
     requested = set(options.agents or study.agents)
-    every = grid.expand(study, dataclasses.replace(options, agents=None))
-    return [spec for spec in every if spec.agent in requested or os.path.isdir(spec.folder)]
+    specs = []
+    for spec in grid.expand(study, dataclasses.replace(options, agents=None)):
+        other = None if os.path.isdir(spec.folder) else grid.measured_elsewhere(spec.folder)
+        if other is not None:  # the same condition run with another number of environments per seed
+            spec = dataclasses.replace(spec, config=dataclasses.replace(spec.config, out=other[0], envs=other[1]))
+        if spec.agent in requested or os.path.isdir(spec.folder):
+            specs.append(spec)
+    return specs
 
 
 def select_conditions(specs: list[RunSpec], tasks: tuple[str, ...] | None, train_obs: str | None) -> list[RunSpec]:
