@@ -318,6 +318,31 @@ def test_horizon_rows_carry_planner_time(tmp_path):
            in markdown(study, rows)
 
 
+def test_table_rows_take_the_evaluation_at_the_trained_planning_horizon(tmp_path):
+    """Figure 5.19 trains Table 5.3's acrobot cfc-zp-det run and evaluates it per horizon only: the table reads
+    the horizon file at the run's own H_plan (10 here), not another horizon's, and a newer plain file wins."""
+    options = grid.GridOptions(runs_dir=str(tmp_path), seeds=1, agents=("cfc-zp-det",))
+    study = grid.get_study("table5_3")
+    spec = next(s for s in grid.expand(study, options) if s.condition.task == "acrobot-swingup")
+    folder = spec.folder
+    _fake_run(folder, 164_688, returns=[[700.0, 900.0]], eval_name="horizon10-clean-164688.csv")
+    _write(os.path.join(folder, "evals", "horizon3-clean-184688.csv"),
+           [{"env_step": 184_688, "seed": 0, "episode": 0, "return": 1.0}])
+    row = next(r for r in study_rows(study, [spec], options.steps) if r["task"] == "acrobot-swingup")
+    assert row["mean"] == ""  # the run does not say which horizon it was trained with
+    with open(os.path.join(folder, "config.json"), "w") as f:
+        f.write('{"config": {}, "agent_config": {"planner": {"horizon": 10}}}')
+    row = study_rows(study, [spec], options.steps)[0]
+    assert (row["env_step"], row["mean"], row["status"]) == (164_688, 800.0, "partial")
+    _write(os.path.join(folder, "evals", "mjx-clean-164688.csv"),
+           [{"env_step": 164_688, "seed": 0, "episode": 0, "return": 5.0}])
+    assert study_rows(study, [spec], options.steps)[0]["mean"] == 5.0  # a tie: the plain file
+    _write(os.path.join(folder, "evals", "mjx-clean-184688.csv"),
+           [{"env_step": 184_688, "seed": 0, "episode": 0, "return": 6.0}])
+    assert study_rows(study, [spec], options.steps)[0]["env_step"] == 184_688
+    assert study_rows(study, [spec], options.steps, backend="dm_control")[0]["mean"] == ""
+
+
 def _fake_noise_evals(folder, step, means):
     """Evaluation files of a run at σ = 0.1, 0.2, 0.3 (2 seeds × 2 episodes, returns mean ± 10)."""
     for sigma, mean in zip((0.1, 0.2, 0.3), means, strict=True):

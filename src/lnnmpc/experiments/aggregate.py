@@ -2,7 +2,9 @@
 
 Each (run, evaluation corruption[, planning horizon]) becomes one row: the newest evaluation file of the run for
 that setting (``evals/<backend>-<tag>-<step>.csv`` or ``evals/horizon<H>-<tag>-<step>.csv``), its environment
-step, the number of seeds and episodes, and
+step, the number of seeds and episodes (a table row with no plain evaluation takes the run's planning-horizon
+evaluation at the horizon it was trained with: the same episodes by the same policy, e.g. Table 5.3's acrobot
+cfc-zp-det run, which Figure 5.19's study trains and evaluates), and
 
 * ``mean``: over all seeds × episodes;
 * ``std``: over all seeds × episodes (pooled; the thesis's ± is over its 10 episodes);
@@ -71,6 +73,28 @@ def newest_eval(folder: str, obs: str, backend: str, horizon: int | None) -> str
     return max(found)[1] if found else None
 
 
+def trained_plan_horizon(folder: str) -> int | None:
+    """The planning horizon a run acted with (its saved agent config), or None when the run does not say."""
+    try:
+        planner = (runfolder.read_config(folder).get("agent_config") or {}).get("planner") or {}
+    except (OSError, ValueError):
+        return None
+    horizon = planner.get("horizon")
+    return horizon if isinstance(horizon, int) else None
+
+
+def table_eval(folder: str, obs: str, backend: str) -> str | None:
+    """The newest evaluation a table row reads: the plain one (``<backend>-<tag>-<step>.csv``) or, on MJX, the
+    planning-horizon one at the run's own horizon (identical protocol: ``evaluate_horizon`` with the trained
+    horizon replays the policy ``lnnmpc.evaluate`` would); the larger step wins, the plain file on a tie."""
+    found = [path for path in (newest_eval(folder, obs, backend, None),) if path]
+    horizon = trained_plan_horizon(folder) if backend == "mjx" else None
+    if horizon is not None:
+        found += [path for path in (newest_eval(folder, obs, backend, horizon),) if path]
+    steps = [int(re.search(r"-(\d+)\.csv$", path).group(1)) for path in found]
+    return found[max(range(len(found)), key=lambda i: (steps[i], -i))] if found else None
+
+
 def study_rows(study: Study, specs: list[RunSpec], steps: int, backend: str = "mjx") -> list[dict]:
     """One row per run × evaluation corruption (× planning horizon), in grid order."""
     rows = []
@@ -92,7 +116,7 @@ def _row(study: Study, spec: RunSpec, obs: str, horizon: int | None, steps: int,
             if ref is not None:
                 row[f"{prefix}_mean"], row[f"{prefix}_std"] = ref.mean, "" if ref.std is None else ref.std
                 row["thesis_source"] = ref.source
-    path = newest_eval(spec.folder, obs, backend, horizon)
+    path = table_eval(spec.folder, obs, backend) if horizon is None else newest_eval(spec.folder, obs, backend, horizon)
     if path is None:
         return row
     step, returns, timing = read_returns(path)
