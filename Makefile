@@ -55,11 +55,14 @@ report: $(STAMP)
 	$(PY) -m lnnmpc.train.cli report "$(RUN)"
 
 # make compare RUNS="<run folder> <run folder> ..." OUT=curves.png [LABELS="'raw inputs' 'symlog inputs'"]
-#   learning curves of several runs on one plot (and the numbers in curves.csv)
-RUNS   ?=
-LABELS ?=
+#              [METRICS=value_loss,reward_loss]
+#   learning curves of several runs on one plot (and the numbers in curves.csv); METRICS adds train.csv panels
+RUNS    ?=
+LABELS  ?=
+METRICS ?=
 compare: $(STAMP)
-	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS))
+	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS)) \
+		$(if $(METRICS),--metrics $(METRICS))
 
 # make experiment NAME=table5_3 [ARGS="--seeds 3 --agents tdmpc2,cfc-zp-det --steps 200000 --dry-run"]
 #   trains (resumes) the study's grid, evaluates it and writes experiments/results/studies/NAME.{csv,md}

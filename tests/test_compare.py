@@ -8,7 +8,7 @@ import os
 import pytest
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.compare import load_curves, main, reference_lines, shared_references
+from lnnmpc.train.compare import load_curves, main, metric_series, reference_lines, shared_references
 from lnnmpc.train.config import ConfigError, TrainConfig
 
 
@@ -62,3 +62,38 @@ def test_compare_draws_every_reference_of_eight_variants(tmp_path):
     assert len(lines) > 4 and "thesis LTC OP stoch" in [label for label, _, _ in lines]
     assert lines[4][2] == lines[0][2]  # styles repeat
     assert main(runs + ["--out", str(tmp_path / "eight.png")]) == 0
+
+
+def _train_csv(run: str, rows: list[tuple[int, int, dict]]) -> None:
+    """train.csv of (env_step, seed, metrics) rows; blank cells where a row lacks a column."""
+    fields = ["env_step", "seed"] + sorted({k for _, _, m in rows for k in m})
+    runfolder.write_csv(os.path.join(run, "train.csv"), fields,
+                        [{"env_step": s, "seed": seed, **m} for s, seed, m in rows])
+
+
+def test_compare_metric_panels_median_and_range_over_seeds(tmp_path, capsys):
+    a = _run(tmp_path / "a", "tdmpc2", {10000: [[1.0], [2.0]]}, seeds=2)
+    b = _run(tmp_path / "b", "cfc-zp-det", {10000: [[1.0]]})
+    _train_csv(a, [(5000, 0, {"value_loss": 0.2, "consistency_loss": 1e-5}),
+                   (5000, 1, {"value_loss": 0.4, "consistency_loss": 2e-5}),
+                   (9000, 0, {"value_loss": 0.3, "consistency_loss": ""})])
+    _train_csv(b, [(5000, 0, {"value_loss": 0.8, "prediction_loss": 3e-4})])
+    series = metric_series([a, b], ["A", "B"], ["value_loss", "consistency_loss"])
+    va, vb = series["value_loss"]
+    assert va["env_step"].tolist() == [5000, 9000] and va["median"].tolist() == pytest.approx([0.3, 0.3])
+    assert (va["min"].tolist(), va["max"].tolist(), va["seeds"].tolist()) == ([0.2, 0.3], [0.4, 0.3], [2, 1])
+    assert vb["label"] == "B" and vb["median"].tolist() == [0.8]
+    assert [e["label"] for e in series["consistency_loss"]] == ["A"]  # B logs prediction_loss instead
+    with pytest.raises(ConfigError, match="no run logs metric 'q_loss'.*logged: consistency_loss, prediction_loss, "
+                                          "value_loss"):
+        metric_series([a, b], ["A", "B"], ["q_loss"])
+    out = str(tmp_path / "m.png")
+    assert main([a, b, "--metrics", "value_loss,prediction_loss", "--out", out]) == 0
+    assert "m-metrics.csv" in capsys.readouterr().out and os.path.getsize(out) > 10_000
+    with open(str(tmp_path / "m-metrics.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["label"], r["metric"], r["env_step"], float(r["median"]), r["seeds"]) for r in rows] == [
+        ("tdmpc2", "value_loss", "5000", pytest.approx(0.3), "2"), ("tdmpc2", "value_loss", "9000", 0.3, "1"),
+        ("cfc-zp-det", "value_loss", "5000", 0.8, "1"), ("cfc-zp-det", "prediction_loss", "5000", 3e-4, "1")]
+    assert main([a, "--metrics", "nope", "--out", out]) == 2
+    assert "no run logs metric 'nope'" in capsys.readouterr().err

@@ -7,6 +7,12 @@ Each run folder's ``eval.csv`` becomes one curve: mean over seeds of each seed's
 seeds (over episodes for a one-seed run), as in the run's own ``curve.png``. Where all runs share a task and
 evaluation corruption, the thesis's final returns for their agents are drawn as horizontal reference lines.
 A CSV beside the figure (same name, ``.csv``) holds the plotted numbers: run, label, env_step, mean, std, seeds.
+
+``--metrics value_loss,reward_loss`` adds one panel per ``train.csv`` metric beside the returns: per run, the
+median over seeds of the metric at each logged step, shaded between the seeds' minimum and maximum; log scale
+where a metric spans more than two decades. A run that does not log a metric (TD-MPC2's ``consistency_loss`` is
+the liquid agents' ``prediction_loss``) is left out of that panel; a metric no run logs is refused with the ones
+they do. Those numbers go to ``<figure>-metrics.csv`` (run, label, metric, env_step, median, min, max, seeds).
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import numpy as np
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, command_status
 from lnnmpc.train.references import references
-from lnnmpc.train.report import eval_table
+from lnnmpc.train.report import eval_table, training_panels
 
 
 def default_label(config: dict) -> str:
@@ -52,6 +58,36 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
     return curves
 
 
+def metric_series(runs: list[str], labels: list[str], metrics: list[str]) -> dict[str, list[dict]]:
+    """{metric: one entry per run that logs it: {"run", "label", "env_step", "median", "min", "max", "seeds"}}
+    from each run's train.csv (arrays over the logged steps; median, min and max over the seeds logging a step).
+
+    Raises ConfigError for a metric that no run logs, naming the metrics they do."""
+    panels = {run: training_panels(runfolder.read_csv(os.path.join(run, "train.csv")))
+              if os.path.exists(os.path.join(run, "train.csv")) else {} for run in runs}
+    known = sorted({name for p in panels.values() for name in p})
+    series: dict[str, list[dict]] = {}
+    for metric in metrics:
+        if not any(metric in p for p in panels.values()):
+            raise ConfigError(f"no run logs metric {metric!r} in train.csv; logged: {', '.join(known) or 'nothing'}")
+        series[metric] = []
+        for run, label in zip(runs, labels, strict=True):
+            if metric not in panels[run]:
+                continue
+            by_step: dict[int, list[float]] = {}
+            for steps, values in panels[run][metric].values():
+                for step, value in zip(steps.tolist(), values.tolist(), strict=True):
+                    by_step.setdefault(step, []).append(value)
+            steps = sorted(by_step)
+            series[metric].append({
+                "run": run, "label": label, "env_step": np.asarray(steps),
+                "median": np.asarray([np.median(by_step[k]) for k in steps]),
+                "min": np.asarray([min(by_step[k]) for k in steps]),
+                "max": np.asarray([max(by_step[k]) for k in steps]),
+                "seeds": np.asarray([len(by_step[k]) for k in steps])})
+    return series
+
+
 def shared_references(curves: list[dict]) -> dict[str, float]:
     """The thesis's reference returns of every plotted agent, when all runs share task and evaluation corruption."""
     if len({(c["task"], str(sorted(c["eval_obs"].items()))) for c in curves}) != 1:
@@ -69,8 +105,10 @@ def reference_lines(curves: list[dict]) -> list[tuple[str, float, object]]:
             for i, (label, value) in enumerate(shared_references(curves).items())]
 
 
-def write_comparison(curves: list[dict], out: str, title: str | None = None) -> tuple[str, str]:
-    """Writes the figure ``out`` and its numbers ``<out without extension>.csv``; returns both paths."""
+def write_comparison(curves: list[dict], out: str, title: str | None = None,
+                     metrics: dict[str, list[dict]] | None = None) -> tuple[str, ...]:
+    """Writes the figure ``out`` and its numbers ``<out without extension>.csv`` (with ``metrics``, from
+    :func:`metric_series`, one more panel per metric and ``<...>-metrics.csv``); returns the paths written."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -78,8 +116,16 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None) -> 
 
     os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
     lines = reference_lines(curves)
-    outside = len(curves) + len(lines) > 6  # a long legend goes beside the axes instead of over the curves
-    fig, ax = plt.subplots(figsize=(9.5 if outside else 7, 4.2))
+    metrics = metrics or {}
+    # a long legend goes beside the axes instead of over the curves (with metric panels, below the figure)
+    outside = len(curves) + len(lines) > 6
+    cols = 2 if len(metrics) == 3 else min(3, 1 + len(metrics))
+    nrows = -(-(1 + len(metrics)) // cols)
+    fig, axes = plt.subplots(nrows, cols, squeeze=False,
+                             figsize=((9.5 if outside and not metrics else 7) + 4.2 * (cols - 1),
+                                      4.2 * nrows + (1.5 if outside and metrics else 0)))
+    ax = axes.flat[0]
+    colors = {}
     rows = []
     for curve in curves:
         steps = [t["env_step"] for t in curve["table"]]
@@ -88,6 +134,7 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None) -> 
         seeds = curve["table"][-1]["seeds"]
         line, = ax.plot(steps, mean, marker="o", markersize=3,
                         label=f"{curve['label']} ({seeds} seed{'s' if seeds != 1 else ''})")
+        colors[curve["run"], curve["label"]] = line.get_color()
         ax.fill_between(steps, mean - std, mean + std, alpha=0.2, color=line.get_color())
         rows += [{"run": curve["run"], "label": curve["label"], "env_step": t["env_step"], "mean": t["mean"],
                   "std": t["std"], "seeds": t["seeds"]} for t in curve["table"]]
@@ -99,16 +146,50 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None) -> 
     ax.set(xlabel="environment steps", ylabel=f"evaluation return (mean ± std over {spread})",
            title=title or ", ".join(tasks), ylim=(0, 1000))
     ax.grid(alpha=0.3)
-    if outside:
+    if outside and metrics:
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.15), ncols=2)
+    elif outside:
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     else:
         ax.legend(fontsize=7, loc="upper left")
+    metric_rows = _draw_metrics(list(axes.flat)[1:], metrics, colors)
+    for each in axes.flat:  # 25K, 50K, ...: full step counts run into each other on narrow panels
+        each.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}K" if x else "0")
     fig.tight_layout()
     fig.savefig(out, dpi=110)
     plt.close(fig)
     table_path = os.path.splitext(out)[0] + ".csv"
     runfolder.write_csv(table_path, list(rows[0]), rows)
-    return out, table_path
+    if not metric_rows:
+        return out, table_path
+    metrics_path = os.path.splitext(out)[0] + "-metrics.csv"
+    runfolder.write_csv(metrics_path, list(metric_rows[0]), metric_rows)
+    return out, table_path, metrics_path
+
+
+def _draw_metrics(axes: list, metrics: dict[str, list[dict]], colors: dict) -> list[dict]:
+    """One panel per metric on ``axes`` (spare axes hidden); returns the plotted numbers as CSV rows."""
+    rows = []
+    for ax, (metric, entries) in zip(axes, metrics.items(), strict=False):
+        for e in entries:
+            color = colors.get((e["run"], e["label"]))
+            ax.plot(e["env_step"], e["median"], linewidth=1.2, color=color, label=e["label"])
+            ax.fill_between(e["env_step"], e["min"], e["max"], alpha=0.2, color=color)
+            rows += [{"run": e["run"], "label": e["label"], "metric": metric, "env_step": int(step),
+                      "median": float(mid), "min": float(lo), "max": float(hi), "seeds": int(n)}
+                     for step, mid, lo, hi, n in zip(e["env_step"], e["median"], e["min"], e["max"], e["seeds"],
+                                                     strict=True)]
+        low = min(float(e["min"].min()) for e in entries)
+        if low > 0 and max(float(e["max"].max()) for e in entries) > 100 * low:
+            ax.set_yscale("log")
+        ax.set(xlabel="environment steps", title=f"{metric} (train.csv; median, min-max over seeds)")
+        ax.title.set_fontsize(9)
+        ax.grid(alpha=0.3)
+        if len(entries) < len(colors):
+            ax.legend(fontsize=6)  # some runs do not log this metric: say which are drawn
+    for ax in axes[len(metrics):]:
+        ax.axis("off")
+    return rows
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -118,11 +199,16 @@ def main(argv: list[str] | None = None) -> int:
                    "corruptions and overrides)")
     p.add_argument("--out", required=True, help="figure path (.png); the numbers go to the same name .csv")
     p.add_argument("--title", default=None)
+    p.add_argument("--metrics", default="", help="train.csv metrics to plot beside the returns, comma separated "
+                   "(e.g. value_loss,reward_loss,grad_norm)")
     args = p.parse_args(argv)
 
     def compare() -> str:
-        figure, table = write_comparison(load_curves(args.runs, args.labels), args.out, args.title)
-        return f"wrote {figure} and {table}"
+        curves = load_curves(args.runs, args.labels)
+        names = [m for m in args.metrics.split(",") if m]
+        metrics = metric_series(args.runs, [c["label"] for c in curves], names) if names else None
+        paths = write_comparison(curves, args.out, args.title, metrics)
+        return f"wrote {', '.join(paths[:-1])} and {paths[-1]}"
 
     return command_status(compare)
 
