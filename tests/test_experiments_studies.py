@@ -207,14 +207,52 @@ def test_device_batch_check_validates_every_job_line(tmp_path):
     jobs = tmp_path / "jobs.txt"
     jobs.write_text("# a comment\n\n"
                     "study-ok   experiment fig5_19 --small --seeds 1\n"
-                    "train-bad  --task cartpole-balance --small --set lamda=0\n")
+                    "train-bad  --task cartpole-balance --small --set lamda=0\n"
+                    "pin-bad@x  --task cartpole-balance --small\n")
     result = subprocess.run(["bash", script, "check", str(jobs)], capture_output=True, text=True, timeout=300,
                             env={**os.environ, "PYTHON": sys.executable, "JAX_PLATFORMS": "cpu"}, cwd=tmp_path)
     assert result.returncode == 1, result.stderr
     lines = result.stdout.splitlines()
     assert lines[0] == "ok      study-ok"
     assert lines[1].startswith("FAILED  train-bad: error: unknown hyperparameter 'lamda'")
+    assert lines[2] == "FAILED  pin-bad@x: bad GPU 'x' in job name 'pin-bad@x': give <name>@<number>"
     assert sorted(os.listdir(tmp_path)) == ["jobs.txt"]  # nothing written beside it
+
+
+def test_device_batch_start_places_pinned_and_round_robin_jobs(tmp_path):
+    """``device_batch.sh start`` on a fake two-GPU machine (an ``nvidia-smi`` that lists two GPUs, a PYTHON that
+    prints its GPU and memory share): ``name@k`` lines go to GPU k mod 2, the others round robin by position,
+    each process gets 0.9 / (jobs on its GPU) of the memory; a GPU that is no number stops it before any launch."""
+    import subprocess
+
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "nvidia-smi").write_text('#!/bin/sh\n[ "$1" = -L ] && printf "GPU 0: fake\\nGPU 1: fake\\n"\nexit 0\n')
+    (bin_dir / "fake-python").write_text(
+        '#!/bin/sh\necho "gpu=$CUDA_VISIBLE_DEVICES mem=$XLA_PYTHON_CLIENT_MEM_FRACTION"\n')
+    for tool in ("nvidia-smi", "fake-python"):
+        os.chmod(bin_dir / tool, 0o755)
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("a    --task cartpole-balance\nb@0  --task cartpole-balance\n"
+                    "c    --task cartpole-balance\nd@3  --task cartpole-balance\n")
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHON": str(bin_dir / "fake-python")}
+    env.pop("OUT", None)
+    env.pop("MEM_FRACTION", None)
+    result = subprocess.run(["bash", script, "start", str(jobs), "60", "20"], capture_output=True, text=True,
+                            timeout=120, env=env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    batch = tmp_path / "runs" / "batch"
+    assert (batch / "gpus.txt").read_text() == "4 jobs on 2 GPU(s), up to 3 per GPU\n"
+    commands = (batch / "commands.txt").read_text().splitlines()
+    assert [line.split(":")[0] for line in commands] == ["a (GPU 0)", "b (GPU 0)", "c (GPU 0)", "d (GPU 1)"]
+    logs = {name: (batch / f"{name}.log").read_text().strip() for name in "abcd"}
+    assert logs == {"a": "gpu=0 mem=0.3", "b": "gpu=0 mem=0.3", "c": "gpu=0 mem=0.3", "d": "gpu=1 mem=0.9"}
+    jobs.write_text("a@one  --task cartpole-balance\n")
+    result = subprocess.run(["bash", script, "start", str(jobs), "60", "20"], capture_output=True, text=True,
+                            timeout=120, env=env, cwd=tmp_path)
+    assert result.returncode == 2 and "bad GPU 'one' in job name 'a@one'" in result.stderr
+    assert len((batch / "commands.txt").read_text().splitlines()) == 4  # nothing launched
 
 
 def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):

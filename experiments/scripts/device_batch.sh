@@ -18,10 +18,11 @@
 # 300 more seconds), so a study line yields its table's cells (at the step reached) even when cut short.
 # Each report prints every run's progress line and packs the run folders without checkpoints, the logs and
 # nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
-# On a machine of several GPUs the jobs are dealt out round robin, one GPU each (CUDA_VISIBLE_DEVICES; job i on
-# GPU i mod count): independent runs gain the most from more GPUs, since one run's step is latency-bound. The
-# jobs on one GPU share it through CUDA MPS when the machine has it (MPS=0 turns that off); each process takes
-# MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
+# On a machine of several GPUs each job gets one GPU (CUDA_VISIBLE_DEVICES): "<name>@<k>" pins a line to GPU k
+# (k mod the machine's count, so a two-GPU file still runs on one GPU), the other lines are dealt out round robin
+# (the i-th line on GPU i mod count). Independent runs gain the most from more GPUs, since one run's step is
+# latency-bound. The jobs on one GPU share it through CUDA MPS when the machine has it (MPS=0 turns that off);
+# each process takes MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
 set -u
 BATCH=runs/batch
 action=${1:?start, wait or check}
@@ -29,6 +30,28 @@ shift
 
 job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines)
     grep -v -E '^\s*(#|$)' "$1"
+}
+
+# "NAME@K" -> "NAME K"; a plain NAME -> "NAME" (no GPU asked for); exit 1 for a GPU that is no number
+split_name() {  # NAME[@K]
+    case $1 in
+    *@*)
+        local gpu=${1##*@}
+        [[ $gpu =~ ^[0-9]+$ ]] || { echo "bad GPU '$gpu' in job name '$1': give <name>@<number>" >&2; return 1; }
+        echo "${1%@*} $gpu" ;;
+    *) echo "$1" ;;
+    esac
+}
+
+# The GPU of every job line of JOBS, one per line ("NAME GPU"): pinned lines on their GPU mod COUNT, the others
+# round robin by their position among all lines.
+place_jobs() {  # JOBS COUNT
+    local index=0 name gpu args
+    while read -r name args; do
+        read -r name gpu < <(split_name "$name") || return 1
+        echo "$name $(((${gpu:-$index}) % $2))"
+        index=$((index + 1))
+    done < <(job_lines "$1")
 }
 
 # The command of one job line "NAME ARGS", its outputs under DIR: a study for "experiment ..." lines (STUDY_EXTRA
@@ -70,8 +93,8 @@ start)
     count=$(job_lines "$jobs" | wc -l)
     gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
     [ "${gpus:-0}" -ge 1 ] || gpus=1
-    per_gpu=$(((count + gpus - 1) / gpus))
-    export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(python3 -c "print(round(0.9 / $per_gpu, 3))")}
+    placement=$(place_jobs "$jobs" "$gpus") || exit 2
+    per_gpu=$(echo "$placement" | awk '{print $2}' | sort | uniq -c | sort -rn | awk 'NR == 1 {print $1}')
     echo "$count jobs on $gpus GPU(s), up to $per_gpu per GPU" | tee "$BATCH/gpus.txt"
     if [ "${MPS:-1}" = 1 ] && command -v nvidia-cuda-mps-control >/dev/null; then
         nvidia-cuda-mps-control -d && sleep 1
@@ -86,8 +109,10 @@ start)
     fi
     index=0
     job_lines "$jobs" | while read -r name args; do
-        gpu=$((index % gpus))
         index=$((index + 1))
+        read -r name gpu < <(echo "$placement" | sed -n "${index}p")
+        sharing=$(echo "$placement" | awk -v g="$gpu" '$2 == g' | wc -l)
+        export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(awk -v n="$sharing" 'BEGIN {print int(900 / n) / 1000}')}
         command=$(job_command "$name" "$args" "$BATCH" "--compile-cache runs/jaxcache" "")
         if [ "${args%% *}" = experiment ]; then  # a study stopped while training still evaluates what it has
             command="timeout -s TERM $seconds $command; timeout -s TERM ${EVAL_SECONDS:-300} $command --no-train"
@@ -107,6 +132,12 @@ check)
     scratch=$(mktemp -d)
     failed=0
     while read -r name args; do
+        if ! split=$(split_name "$name" 2>&1); then
+            echo "FAILED  $name: $split"
+            failed=1
+            continue
+        fi
+        read -r name _ <<<"$split"
         command=$(job_command "$name" "$args" "$scratch" --check --dry-run)
         # shellcheck disable=SC2086  # the arguments are meant to split
         if output=$($command 2>&1 </dev/null); then
