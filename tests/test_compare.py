@@ -78,7 +78,8 @@ def test_compare_metric_panels_median_and_range_over_seeds(tmp_path, capsys):
                    (5000, 1, {"value_loss": 0.4, "consistency_loss": 2e-5}),
                    (9000, 0, {"value_loss": 0.3, "consistency_loss": ""})])
     _train_csv(b, [(5000, 0, {"value_loss": 0.8, "prediction_loss": 3e-4})])
-    series = metric_series([a, b], ["A", "B"], ["value_loss", "consistency_loss"])
+    curves = load_curves([a, b], ["A", "B"])
+    series = metric_series(curves, ["value_loss", "consistency_loss"])
     va, vb = series["value_loss"]
     assert va["env_step"].tolist() == [5000, 9000] and va["median"].tolist() == pytest.approx([0.3, 0.3])
     assert (va["min"].tolist(), va["max"].tolist(), va["seeds"].tolist()) == ([0.2, 0.3], [0.4, 0.3], [2, 1])
@@ -86,7 +87,7 @@ def test_compare_metric_panels_median_and_range_over_seeds(tmp_path, capsys):
     assert [e["label"] for e in series["consistency_loss"]] == ["A"]  # B logs prediction_loss instead
     with pytest.raises(ConfigError, match="no run logs metric 'q_loss'.*logged: consistency_loss, prediction_loss, "
                                           "value_loss"):
-        metric_series([a, b], ["A", "B"], ["q_loss"])
+        metric_series(curves, ["q_loss"])
     out = str(tmp_path / "m.png")
     assert main([a, b, "--metrics", "value_loss,prediction_loss", "--out", out]) == 0
     assert "m-metrics.csv" in capsys.readouterr().out and os.path.getsize(out) > 10_000

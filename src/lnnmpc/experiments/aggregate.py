@@ -62,15 +62,21 @@ def read_returns(path: str) -> tuple[int, np.ndarray, np.ndarray | None]:
     return int(rows[0]["env_step"]), returns, np.asarray(timing) if timing else None
 
 
-def newest_eval(folder: str, obs: str, backend: str, horizon: int | None) -> str | None:
-    """The evaluation file of the largest checkpoint step for this setting, or None."""
+def _newest_step_eval(folder: str, obs: str, backend: str, horizon: int | None) -> tuple[int, str] | None:
+    """(step, path) of the evaluation file of the largest checkpoint step for this setting, or None."""
     pattern = eval_file(folder, 0, obs, backend, horizon)[: -len("0.csv")]
     found = []
     for path in glob.glob(glob.escape(pattern) + "*.csv"):
         match = re.fullmatch(r"(\d+)\.csv", path[len(pattern):])
         if match:
             found.append((int(match.group(1)), path))
-    return max(found)[1] if found else None
+    return max(found) if found else None
+
+
+def newest_eval(folder: str, obs: str, backend: str, horizon: int | None) -> str | None:
+    """The evaluation file of the largest checkpoint step for this setting, or None."""
+    newest = _newest_step_eval(folder, obs, backend, horizon)
+    return newest[1] if newest else None
 
 
 def trained_plan_horizon(folder: str) -> int | None:
@@ -87,12 +93,13 @@ def table_eval(folder: str, obs: str, backend: str) -> str | None:
     """The newest evaluation a table row reads: the plain one (``<backend>-<tag>-<step>.csv``) or, on MJX, the
     planning-horizon one at the run's own horizon (identical protocol: ``evaluate_horizon`` with the trained
     horizon replays the policy ``lnnmpc.evaluate`` would); the larger step wins, the plain file on a tie."""
-    found = [path for path in (newest_eval(folder, obs, backend, None),) if path]
+    plain = _newest_step_eval(folder, obs, backend, None)
     horizon = trained_plan_horizon(folder) if backend == "mjx" else None
-    if horizon is not None:
-        found += [path for path in (newest_eval(folder, obs, backend, horizon),) if path]
-    steps = [int(re.search(r"-(\d+)\.csv$", path).group(1)) for path in found]
-    return found[max(range(len(found)), key=lambda i: (steps[i], -i))] if found else None
+    trained = _newest_step_eval(folder, obs, backend, horizon) if horizon is not None else None
+    if plain and trained and trained[0] > plain[0]:
+        return trained[1]
+    newest = plain or trained
+    return newest[1] if newest else None
 
 
 def study_rows(study: Study, specs: list[RunSpec], steps: int, backend: str = "mjx") -> list[dict]:

@@ -58,11 +58,13 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
     return curves
 
 
-def metric_series(runs: list[str], labels: list[str], metrics: list[str]) -> dict[str, list[dict]]:
-    """{metric: one entry per run that logs it: {"run", "label", "env_step", "median", "min", "max", "seeds"}}
-    from each run's train.csv (arrays over the logged steps; median, min and max over the seeds logging a step).
+def metric_series(curves: list[dict], metrics: list[str]) -> dict[str, list[dict]]:
+    """{metric: one entry per run of ``curves`` (:func:`load_curves`) that logs it: {"run", "label", "env_step",
+    "median", "min", "max", "seeds"}} from each run's train.csv (arrays over the logged steps; median, min and max
+    over the seeds logging a step).
 
     Raises ConfigError for a metric that no run logs, naming the metrics they do."""
+    runs = [c["run"] for c in curves]
     panels = {run: training_panels(runfolder.read_csv(os.path.join(run, "train.csv")))
               if os.path.exists(os.path.join(run, "train.csv")) else {} for run in runs}
     known = sorted({name for p in panels.values() for name in p})
@@ -71,7 +73,7 @@ def metric_series(runs: list[str], labels: list[str], metrics: list[str]) -> dic
         if not any(metric in p for p in panels.values()):
             raise ConfigError(f"no run logs metric {metric!r} in train.csv; logged: {', '.join(known) or 'nothing'}")
         series[metric] = []
-        for run, label in zip(runs, labels, strict=True):
+        for run, label in ((c["run"], c["label"]) for c in curves):
             if metric not in panels[run]:
                 continue
             by_step: dict[int, list[float]] = {}
@@ -206,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     def compare() -> str:
         curves = load_curves(args.runs, args.labels)
         names = [m for m in args.metrics.split(",") if m]
-        metrics = metric_series(args.runs, [c["label"] for c in curves], names) if names else None
+        metrics = metric_series(curves, names) if names else None
         paths = write_comparison(curves, args.out, args.title, metrics)
         return f"wrote {', '.join(paths[:-1])} and {paths[-1]}"
 
