@@ -1,0 +1,207 @@
+"""Where one update (or act step) spends its time on the device: a `jax.profiler` trace of a few calls, summed per
+kernel, with the device's busy time set against the wall time of a call.
+
+The update is latency-bound (``benchmarks/results/README.md``: 13.5 TFLOP/s, unchanged by bfloat16 products), so
+the question is whether the time goes to gaps between many short kernels (cut their number: fusion, fewer scan
+steps, command buffers) or to a few long ones (make those faster). Per program it records:
+
+* ``kernels_per_call``: kernel launches on the device per call (each step of a ``lax.scan`` launches its own);
+* ``busy_ms_per_call``: the union of the kernels' intervals per call, against ``wall_ms_per_call`` (host clock,
+  dispatch to ready); ``busy_fraction`` = busy / wall: low means launch gaps dominate;
+* ``by_category``: matmul / fusion / reduce / copy / other kernels (count and time per call);
+* ``top_kernels``: the kernels with the most time per call (name, launches and µs per call, mean µs).
+
+On a machine without an accelerator the trace has no device, and the XLA executor threads of the host stand in
+(their ops rather than kernels), which is enough to check the script.
+
+    python benchmarks/profile_update.py --task walker-run --agent cfc-zp-det --seeds 3 \\
+        --set input_transform=symlog --set lambda_=0 --set rollout_steps=3
+    python benchmarks/profile_update.py --small --task cartpole-balance --calls 2 --out /tmp/p.json   # CPU check
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import os
+import sys
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from common import default_out, environment_info, write_json  # noqa: E402
+from train_throughput import build_loop  # noqa: E402
+
+from lnnmpc.train.config import parse_overrides  # noqa: E402
+
+CATEGORIES = (  # first match wins; names of cuBLAS/cuDNN/CUTLASS products and XLA's own kernels
+    ("matmul", ("gemm", "cublas", "cutlass", "xmma", "nvjet", "dot", "triton_gemm")),
+    ("copy", ("memcpy", "memset", "copy", "transpose")),
+    ("reduce", ("reduce", "reduction")),
+    ("fusion", ("fusion",)),
+)
+HOST_EXECUTOR_THREADS = ("XLA", "Xla", "xla")  # thread-name markers of the CPU client's executor threads
+
+
+def kernel_category(name: str) -> str:
+    """matmul / copy / reduce / fusion / other, from a kernel's name."""
+    lower = name.lower()
+    for category, markers in CATEGORIES:
+        if any(marker in lower for marker in markers):
+            return category
+    return "other"
+
+
+def interval_union(intervals: list[tuple[float, float]]) -> float:
+    """Total length covered by ``(start, end)`` intervals (overlaps counted once)."""
+    total, current_start, current_end = 0.0, None, None
+    for start, end in sorted(intervals):
+        if current_end is None or start > current_end:
+            if current_end is not None:
+                total += current_end - current_start
+            current_start, current_end = start, end
+        else:
+            current_end = max(current_end, end)
+    if current_end is not None:
+        total += current_end - current_start
+    return total
+
+
+def kernel_events(events: list[dict]) -> tuple[list[dict], str]:
+    """The complete ("X") events of the device processes (names starting ``/device:``; of their ``Stream``
+    threads where there are such), else, on a host-only trace, those of the XLA executor threads; with which
+    of these it found."""
+    names = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
+    threads = {(e["pid"], e.get("tid")): e["args"]["name"] for e in events
+               if e.get("ph") == "M" and e.get("name") == "thread_name"}
+    device_pids = {pid for pid, name in names.items() if name.startswith("/device:")}
+    complete = [e for e in events if e.get("ph") == "X" and "dur" in e]
+    found = [e for e in complete if e["pid"] in device_pids]
+    # Kernels run on the device's streams; lines derived from them ("XLA Ops", "XLA Modules") would count twice.
+    streams = [e for e in found if threads.get((e["pid"], e.get("tid")), "").startswith("Stream")]
+    if streams or found:
+        return streams or found, "device streams" if streams else "device"
+    executor = {key for key, name in threads.items() if any(m in name for m in HOST_EXECUTOR_THREADS)}
+    return [e for e in complete if (e["pid"], e.get("tid")) in executor], "host executor threads"
+
+
+def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: int = 25) -> dict:
+    """Per-call totals of a trace's kernels (``kernel_events``) over ``calls`` calls timed at ``wall_s``."""
+    kernels, source = kernel_events(events)
+    per_name = collections.defaultdict(lambda: [0, 0.0])
+    per_category = collections.defaultdict(lambda: [0, 0.0])
+    for e in kernels:
+        per_name[e["name"]][0] += 1
+        per_name[e["name"]][1] += e["dur"]
+        category = per_category[kernel_category(e["name"])]
+        category[0] += 1
+        category[1] += e["dur"]
+    busy_us = interval_union([(e["ts"], e["ts"] + e["dur"]) for e in kernels])
+    wall_ms = 1e3 * sum(wall_s) / len(wall_s)
+    busy_ms = busy_us / 1e3 / calls
+    ranked = sorted(per_name.items(), key=lambda item: -item[1][1])[:top]
+    return {
+        "source": source,
+        "calls": calls,
+        "kernels_per_call": len(kernels) / calls,
+        "distinct_kernels": len(per_name),
+        "busy_ms_per_call": busy_ms,
+        "kernel_ms_per_call": sum(e["dur"] for e in kernels) / 1e3 / calls,
+        "wall_ms_per_call": wall_ms,
+        "busy_fraction": busy_ms / wall_ms if wall_ms > 0 else None,
+        "by_category": {name: {"kernels_per_call": n / calls, "ms_per_call": us / 1e3 / calls}
+                        for name, (n, us) in sorted(per_category.items(), key=lambda item: -item[1][1])},
+        "top_kernels": [{"name": name, "launches_per_call": n / calls, "us_per_call": us / calls, "mean_us": us / n}
+                        for name, (n, us) in ranked],
+    }
+
+
+def load_trace(directory: str) -> list[dict]:
+    """The events of the newest perfetto trace (``*perfetto_trace.json.gz``) under ``directory``."""
+    paths = sorted(glob.glob(os.path.join(directory, "**", "*perfetto_trace.json.gz"), recursive=True),
+                   key=os.path.getmtime)
+    if not paths:
+        raise FileNotFoundError(f"no perfetto_trace.json.gz under {directory}: did jax.profiler write one?")
+    with gzip.open(paths[-1], "rt") as f:
+        data = json.load(f)
+    return data["traceEvents"] if isinstance(data, dict) else data
+
+
+def profile_call(fn, args: tuple, calls: int, warmup: int = 2, top: int = 25) -> dict:
+    """Warms ``fn(*args)`` up, traces ``calls`` calls (each waited for) and summarizes the trace's kernels."""
+    for _ in range(warmup):
+        jax.block_until_ready(fn(*args))
+    wall = []
+    with tempfile.TemporaryDirectory() as directory:
+        with jax.profiler.trace(directory, create_perfetto_trace=True):
+            for _ in range(calls):
+                start = time.perf_counter()
+                jax.block_until_ready(fn(*args))
+                wall.append(time.perf_counter() - start)
+        events = load_trace(directory)
+    return summarize_kernels(events, calls, wall, top)
+
+
+def programs(args) -> dict:
+    """The compiled programs to profile, each as (function, arguments): the agent's update and act step,
+    vmapped over seeds (act also over environments), on a replay filled with random steps."""
+    loop = build_loop(args.task, args.agent, args.envs, args.small, parse_overrides(args.overrides))
+    ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(0), args.seeds))
+    seed_chunk = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
+    ts, _ = seed_chunk(ts, args.fill)
+    out = {}
+    if "update" in args.what:
+        keys = jax.random.split(jax.random.key(2), args.seeds)
+        out["update"] = (jax.jit(jax.vmap(loop._update)).lower(ts, keys).compile(), (ts, keys))
+    if "act" in args.what:
+        agent = loop.agent
+        one = lambda s, carry, obs, dt, k: agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
+        act = jax.jit(jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))))
+        keys = jax.random.split(jax.random.key(1), (args.seeds, args.envs))
+        out["act"] = (act, (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys))
+    return out
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--task", default="walker-run")
+    parser.add_argument("--agent", default="cfc-zp-det")
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--envs", type=int, default=1, help="environments per seed (the act step's batch)")
+    parser.add_argument("--what", default="update,act", help="programs to profile: update, act (comma list)")
+    parser.add_argument("--calls", type=int, default=5, help="calls traced per program")
+    parser.add_argument("--fill", type=int, default=600, help="random iterations to fill the replay first")
+    parser.add_argument("--top", type=int, default=25, help="kernels listed per program")
+    parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
+    parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
+                        help="agent hyperparameter override, repeatable (e.g. --set rollout_steps=3)")
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args(argv)
+    unknown = set(args.what.split(",")) - {"update", "act"}
+    if unknown:
+        parser.error(f"unknown --what {sorted(unknown)}: choose from update, act")
+    if args.calls < 1 or args.seeds < 1 or args.envs < 1:
+        parser.error(f"--calls, --seeds and --envs must be >= 1 (got {args.calls}, {args.seeds}, {args.envs})")
+    out = args.out or default_out(f"profile-{args.agent}-{args.task}")
+    payload = {"benchmark": "profile_update", "env": environment_info(), "args": vars(args), "results": {}}
+    for name, (fn, fn_args) in programs(args).items():
+        summary = profile_call(fn, fn_args, args.calls, top=args.top)
+        payload["results"][name] = summary
+        write_json(out, payload)
+        print(f"{name:6s} {summary['wall_ms_per_call']:8.2f} ms wall  {summary['busy_ms_per_call']:8.2f} ms busy "
+              f"({summary['source']})  {summary['kernels_per_call']:7.0f} kernels/call", flush=True)
+        for category, row in summary["by_category"].items():
+            print(f"    {category:8s} {row['kernels_per_call']:7.0f} kernels  {row['ms_per_call']:8.3f} ms", flush=True)
+        for row in summary["top_kernels"][:10]:
+            print(f"    {row['us_per_call']:9.1f} us  x{row['launches_per_call']:<6.0f} {row['name'][:90]}", flush=True)
+    print(f"wrote {out}")
+
+
+if __name__ == "__main__":
+    main()
