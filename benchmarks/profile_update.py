@@ -108,6 +108,9 @@ def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: 
     ranked = sorted(per_name.items(), key=lambda item: -item[1][1])[:top]
     return {
         "source": source,
+        # What the trace held, to see why a device was not found where one was expected.
+        "processes": sorted({e["args"]["name"] for e in events
+                             if e.get("ph") == "M" and e.get("name") == "process_name"}),
         "calls": calls,
         "kernels_per_call": len(kernels) / calls,
         "distinct_kernels": len(per_name),

@@ -75,3 +75,14 @@ def test_host_only_trace_falls_back_to_the_executor_threads():
     summary = pu.summarize_kernels(events, calls=1, wall_s=[1e-4])
     assert summary["source"] == "host executor threads"
     assert summary["kernels_per_call"] == 1 and summary["busy_ms_per_call"] == pytest.approx(0.030)
+
+
+def test_profile_call_traces_a_jitted_function_on_this_machine():
+    import jax
+    import jax.numpy as jnp
+
+    fn = jax.jit(lambda x: jnp.tanh(x @ x).sum())
+    summary = pu.profile_call(fn, (jnp.ones((32, 32)),), calls=2, warmup=1, top=5)
+    assert summary["calls"] == 2 and summary["kernels_per_call"] >= 1
+    assert 0 < summary["busy_ms_per_call"] and summary["wall_ms_per_call"] > 0
+    assert summary["processes"] and len(summary["top_kernels"]) <= 5
