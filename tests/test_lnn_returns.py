@@ -56,3 +56,13 @@ def test_lambda_edge_cases_are_td0_and_monte_carlo(data):
 def test_lambda_returns_reject_mismatched_shapes():
     with pytest.raises(ValueError, match=r"rewards \(3, 2\) and next_values \(3, 1\)"):
         lambda_returns(jnp.zeros((3, 2)), jnp.zeros((3, 1)), 0.99, 0.95)
+
+
+def test_static_lambda_zero_skips_the_scan_and_equals_the_traced_path(data):
+    rewards, values = data
+    shortcut = jax.jit(lambda r, v: lambda_returns(r, v, 0.99, 0.0))
+    traced = jax.jit(lambda r, v, lam: lambda_returns(r, v, 0.99, lam))  # λ traced: the backward scan
+    np.testing.assert_allclose(np.asarray(shortcut(rewards, values)),
+                               np.asarray(traced(rewards, values, jnp.float32(0.0))), rtol=1e-6, atol=1e-6)
+    assert "scan" not in str(jax.make_jaxpr(lambda r, v: lambda_returns(r, v, 0.99, 0))(rewards, values))
+    assert "scan" in str(jax.make_jaxpr(lambda r, v: lambda_returns(r, v, 0.99, 0.5))(rewards, values))

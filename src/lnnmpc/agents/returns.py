@@ -18,10 +18,14 @@ def lambda_returns(rewards: jax.Array, next_values: jax.Array, gamma: float, lam
     """TD(λ) targets (H, ...) from ``rewards`` r_0..r_{H−1} and ``next_values`` v_1..v_H, both (H, ...).
 
     ``next_values[t]`` is the value of the latent after step t (``next_values[-1]`` is the final bootstrap
-    v_H). ``gamma`` and ``lambda_`` are numbers in [0, 1] (may be traced).
+    v_H). ``gamma`` and ``lambda_`` are numbers in [0, 1] (may be traced). A ``lambda_`` of exactly 0 given as a
+    Python number gives one-step targets r_t + γ v_{t+1} directly, without the backward scan (H sequential steps
+    fewer in every update; the same numbers).
     """
     if rewards.shape != next_values.shape:
         raise ValueError(f"rewards {rewards.shape} and next_values {next_values.shape} must have the same shape")
+    if isinstance(lambda_, (int, float)) and lambda_ == 0:
+        return rewards + gamma * next_values
 
     def step(following, per_step):
         reward, value = per_step
