@@ -32,11 +32,10 @@ import tempfile
 import time
 
 import jax
-import jax.numpy as jnp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from common import default_out, environment_info, write_json  # noqa: E402
-from train_throughput import build_loop  # noqa: E402
+from train_throughput import act_call, build_loop, filled_state, update_call  # noqa: E402
 
 from lnnmpc.train.config import parse_overrides  # noqa: E402
 
@@ -73,13 +72,17 @@ def interval_union(intervals: list[tuple[float, float]]) -> float:
     return total
 
 
+def _metadata(events: list[dict], kind: str) -> list[dict]:
+    """The trace's metadata ("M") events of one kind (``process_name``, ``thread_name``)."""
+    return [e for e in events if e.get("ph") == "M" and e.get("name") == kind]
+
+
 def kernel_events(events: list[dict]) -> tuple[list[dict], str]:
     """The complete ("X") events of the device processes (names starting ``/device:``; of their ``Stream``
     threads where there are such), else, on a host-only trace, those of the XLA executor threads; with which
     of these it found."""
-    names = {e["pid"]: e["args"]["name"] for e in events if e.get("ph") == "M" and e.get("name") == "process_name"}
-    threads = {(e["pid"], e.get("tid")): e["args"]["name"] for e in events
-               if e.get("ph") == "M" and e.get("name") == "thread_name"}
+    names = {e["pid"]: e["args"]["name"] for e in _metadata(events, "process_name")}
+    threads = {(e["pid"], e.get("tid")): e["args"]["name"] for e in _metadata(events, "thread_name")}
     device_pids = {pid for pid, name in names.items() if name.startswith("/device:")}
     complete = [e for e in events if e.get("ph") == "X" and "dur" in e]
     found = [e for e in complete if e["pid"] in device_pids]
@@ -109,8 +112,7 @@ def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: 
     return {
         "source": source,
         # What the trace held, to see why a device was not found where one was expected.
-        "processes": sorted({e["args"]["name"] for e in events
-                             if e.get("ph") == "M" and e.get("name") == "process_name"}),
+        "processes": sorted({e["args"]["name"] for e in _metadata(events, "process_name")}),
         "calls": calls,
         "kernels_per_call": len(kernels) / calls,
         "distinct_kernels": len(per_name),
@@ -155,19 +157,12 @@ def programs(args) -> dict:
     """The compiled programs to profile, each as (function, arguments): the agent's update and act step,
     vmapped over seeds (act also over environments), on a replay filled with random steps."""
     loop = build_loop(args.task, args.agent, args.envs, args.small, parse_overrides(args.overrides))
-    ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(0), args.seeds))
-    seed_chunk = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
-    ts, _ = seed_chunk(ts, args.fill)
+    ts = filled_state(loop, args.seeds, args.fill)
     out = {}
     if "update" in args.what:
-        keys = jax.random.split(jax.random.key(2), args.seeds)
-        out["update"] = (jax.jit(jax.vmap(loop._update)).lower(ts, keys).compile(), (ts, keys))
+        out["update"] = update_call(loop, ts)
     if "act" in args.what:
-        agent = loop.agent
-        one = lambda s, carry, obs, dt, k: agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
-        act = jax.jit(jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))))
-        keys = jax.random.split(jax.random.key(1), (args.seeds, args.envs))
-        out["act"] = (act, (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys))
+        out["act"] = act_call(loop.agent, ts)
     return out
 
 

@@ -41,32 +41,45 @@ def build_loop(task: str, agent: str, envs: int, small: bool, overrides: dict | 
     return TrainingLoop(agent, env, env, LoopConfig(num_envs=envs, replay_capacity=51_000))
 
 
-def measure(task: str, seeds: int, envs: int, args) -> dict:
-    loop = build_loop(task, args.agent, envs, args.small, parse_overrides(args.overrides))
+def filled_state(loop: TrainingLoop, seeds: int, fill: int):
+    """The loop's training state for ``seeds`` seeds (vmap) after ``fill`` iterations of random actions."""
     ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(0), seeds))
     seed_chunk = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
-    ts, _ = seed_chunk(ts, args.fill)
+    return seed_chunk(ts, fill)[0]
+
+
+def act_call(agent, ts):
+    """The jitted act step with exploration over seeds x environments, and its arguments from ``ts``."""
+    one = lambda s, carry, obs, dt, k: agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
+    keys = jax.random.split(jax.random.key(1), ts.episode_return.shape)  # (seeds, envs)
+    act = jax.jit(jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))))
+    return act, (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)
+
+
+def update_call(loop: TrainingLoop, ts):
+    """One update for every seed, compiled (for timing and XLA's cost analysis), and its arguments."""
+    keys = jax.random.split(jax.random.key(2), ts.episode_return.shape[0])
+    return jax.jit(jax.vmap(loop._update)).lower(ts, keys).compile(), (ts, keys)
+
+
+def measure(task: str, seeds: int, envs: int, args) -> dict:
+    loop = build_loop(task, args.agent, envs, args.small, parse_overrides(args.overrides))
+    ts = filled_state(loop, seeds, args.fill)
     act_dim = loop.env.action_size
     record = {"task": task, "agent": args.agent, "seeds": seeds, "envs": envs}
-
-    def act_fn(agent):
-        one = lambda s, carry, obs, dt, k: agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
-        return jax.jit(jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))))  # seeds x envs
-
-    keys = jax.random.split(jax.random.key(1), (seeds, envs))
-    act_args = (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)
-    act_t = time_call(act_fn(loop.agent), *act_args, repeats=args.repeats)
+    act, act_args = act_call(loop.agent, ts)
+    act_t = time_call(act, *act_args, repeats=args.repeats)
     record["act_ms"] = 1e3 * act_t["median_s"]
     if args.compare_unroll:
         rolled = type(loop.agent)(dataclasses.replace(
             loop.agent.config, planner=dataclasses.replace(loop.agent.config.planner, unroll=False)))
-        record["act_rolled_ms"] = 1e3 * time_call(act_fn(rolled), *act_args, repeats=args.repeats)["median_s"]
+        act_rolled = act_call(rolled, ts)[0]
+        record["act_rolled_ms"] = 1e3 * time_call(act_rolled, *act_args, repeats=args.repeats)["median_s"]
     env_step = jax.jit(jax.vmap(jax.vmap(loop.env.step)))
     actions = jnp.zeros((seeds, envs, act_dim))
     record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
-    update_keys = jax.random.split(jax.random.key(2), seeds)
-    update = jax.jit(jax.vmap(loop._update)).lower(ts, update_keys).compile()  # timed and cost-analysed
-    record["update_ms"] = 1e3 * time_call(update, ts, update_keys, repeats=args.repeats)["median_s"]
+    update, update_args = update_call(loop, ts)  # timed and cost-analysed
+    record["update_ms"] = 1e3 * time_call(update, *update_args, repeats=args.repeats)["median_s"]
     # XLA's count of the update's arithmetic, and the rate it ran at: far below the device's peak means the
     # update is latency-bound (many small kernels), not compute-bound.
     record["update_gflop"] = compiled_gflop(update)
