@@ -4,7 +4,8 @@ and end-to-end chunks versus seeds.
 For each task and number of seeds (vmap), times with compile excluded (medians over ``--repeats``):
 * ``act_ms``: one MPPI act step for every seed (vmap over seeds, one environment each);
 * ``update_ms``: one update (batch 256; the agent's training window) for every seed; ``update_gflop`` its
-  arithmetic by XLA's cost analysis and ``update_tflop_per_s`` the rate achieved;
+  arithmetic by XLA's cost analysis and ``update_tflop_per_s`` the rate achieved; ``update_compile_s`` the
+  seconds to lower and compile it (``--update-only`` stops here);
 * ``chunk_env_steps_per_s``: a training chunk of ``--chunk`` iterations (act -> env step -> insert -> update),
   environment steps per second summed over seeds.
 Writes JSON (device, versions, config, results), rewritten after each measurement.
@@ -20,6 +21,7 @@ import argparse
 import dataclasses
 import itertools
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -67,6 +69,17 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     ts = filled_state(loop, seeds, args.fill)
     act_dim = loop.env.action_size
     record = {"task": task, "agent": args.agent, "seeds": seeds, "envs": envs}
+    update_start = time.perf_counter()
+    update, update_args = update_call(loop, ts)  # timed and cost-analysed
+    record["update_compile_s"] = time.perf_counter() - update_start  # lowering + XLA compilation
+    record["update_ms"] = 1e3 * time_call(update, *update_args, repeats=args.repeats)["median_s"]
+    # XLA's count of the update's arithmetic, and the rate it ran at: far below the device's peak means the
+    # update is latency-bound (many small kernels), not compute-bound.
+    record["update_gflop"] = compiled_gflop(update)
+    if record["update_gflop"] is not None:
+        record["update_tflop_per_s"] = record["update_gflop"] / record["update_ms"]
+    if args.update_only:
+        return record
     act, act_args = act_call(loop.agent, ts)
     act_t = time_call(act, *act_args, repeats=args.repeats)
     record["act_ms"] = 1e3 * act_t["median_s"]
@@ -78,13 +91,6 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     env_step = jax.jit(jax.vmap(jax.vmap(loop.env.step)))
     actions = jnp.zeros((seeds, envs, act_dim))
     record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
-    update, update_args = update_call(loop, ts)  # timed and cost-analysed
-    record["update_ms"] = 1e3 * time_call(update, *update_args, repeats=args.repeats)["median_s"]
-    # XLA's count of the update's arithmetic, and the rate it ran at: far below the device's peak means the
-    # update is latency-bound (many small kernels), not compute-bound.
-    record["update_gflop"] = compiled_gflop(update)
-    if record["update_gflop"] is not None:
-        record["update_tflop_per_s"] = record["update_gflop"] / record["update_ms"]
     if args.skip_chunk:
         record["parts_ms"] = {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]}
         return record
@@ -113,6 +119,8 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=9)
     parser.add_argument("--skip-chunk", action="store_true",
                         help="time act, env step and update only (no end-to-end chunk: saves its compilation)")
+    parser.add_argument("--update-only", action="store_true",
+                        help="time the update alone (no act step, env step or chunk)")
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
     parser.add_argument("--matmul-precision", choices=("default", "tensorfloat32", "bfloat16", "highest"),
                         default="default", help="jax_default_matmul_precision for every program timed")
@@ -129,6 +137,10 @@ def main(argv=None):
             record = measure(task, seeds, envs, args)
             payload["results"].append(record)
             write_json(out, payload)
+            if args.update_only:
+                print(f"{task:18s} {args.agent:12s} seeds={seeds:2d}  update {record['update_ms']:8.2f} ms"
+                      f" (compiled in {record['update_compile_s']:.1f} s)", flush=True)
+                continue
             chunk = ("" if args.skip_chunk else f"  chunk {record['ms_per_iteration']:8.2f} ms/iteration"
                      f"  {record['chunk_env_steps_per_s']:10.0f} env steps/s")
             print(f"{task:18s} {args.agent:12s} seeds={seeds:2d} envs={envs:2d}  env {record['env_ms']:6.2f} ms"

@@ -260,3 +260,27 @@ def test_rollout_steps_are_validated():
         tiny("cfc-zp-det", rollout_steps=0)
     with pytest.raises(ValueError, match=r"rollout_steps \(5\) must be <= horizon \(4\)"):
         tiny("cfc-zp-det", rollout_steps=5)
+
+
+@pytest.mark.parametrize("name", ["cfc-zp-det", "ltc-op-det"])
+def test_scan_unroll_changes_speed_only(name):
+    """``scan_unroll`` (encoder steps per scan iteration; >= the window: no loop at all) gives the world-model
+    loss and its parameter gradients of the rolled scan (the fused CfC path and the LTC path)."""
+    rolled = tiny(name)
+    state = quick_jit(rolled.init)(jax.random.key(6))
+    batch, key = window(rolled, seed=7), jax.random.key(8)
+    value = lambda agent: quick_jit(jax.value_and_grad(
+        lambda p: agent.world_model_loss(p, state.target_q, batch, key)[0]))(state.params)
+    loss, grads = value(rolled)
+    for steps in (3, rolled.sequence_length):
+        unrolled = tiny(name, scan_unroll=steps)
+        jaxpr = str(jax.make_jaxpr(lambda p: unrolled.world_model_loss(p, state.target_q, batch, key)[0])(
+            state.params))
+        assert f"unroll={steps}" in jaxpr and f"unroll={steps}" not in str(jax.make_jaxpr(
+            lambda p: rolled.world_model_loss(p, state.target_q, batch, key)[0])(state.params))  # it reached the scan
+        got_loss, got_grads = value(unrolled)
+        np.testing.assert_allclose(float(got_loss), float(loss), rtol=1e-5)
+        for got, want in zip(jax.tree_util.tree_leaves(got_grads), jax.tree_util.tree_leaves(grads), strict=True):
+            np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="scan_unroll=0 is invalid; expected an integer >= 1"):
+        tiny(name, scan_unroll=0)

@@ -83,11 +83,13 @@ class LNNConfig(TDMPC2Config):
     free_bits: float = -2.0  # floor of the OP-stoch per-step NLL, nats per dimension
     nll_beta: float = 1.0  # β-NLL weight stop_gradient(σ^(2β)) of the stochastic variants' NLL; 0 = plain NLL
     rollout_steps: int = 1  # K: depths of open-loop model losses (module docstring); 1 = the thesis
+    scan_unroll: int = 1  # encoder time steps per lax.scan iteration in the update (speed only; >= T + H: no loop)
 
     def __post_init__(self):
         super().__post_init__()
         check_int_at_least("burn_in", self.burn_in, 0)
         check_int_at_least("rollout_steps", self.rollout_steps, 1)
+        check_int_at_least("scan_unroll", self.scan_unroll, 1)
         if self.rollout_steps > self.horizon:
             raise ValueError(f"rollout_steps ({self.rollout_steps}) must be <= horizon ({self.horizon}): depth k "
                              "has horizon - k positions in a window")
@@ -145,7 +147,8 @@ class LNNTDMPC2(TDMPC2):
                         dt: jax.Array) -> jax.Array:
         """Encoder states (T, B, N) after each step, from h0 (B, N), obs (T, B, d), prev_action (T, B, A), dt (T, B)."""
         inputs = encoder_input(self.config.model, obs, prev_action)
-        return unroll(self.cell, {"params": params["encoder"]}, h0, inputs, dt).states
+        return unroll(self.cell, {"params": params["encoder"]}, h0, inputs, dt,
+                      scan_unroll=self.config.scan_unroll).states
 
     def latents(self, params, batch: dict) -> jax.Array:
         """z_0..z_H (H + 1, B, N) of a window: burn-in from the stored state under stop_gradient, then BPTT."""
