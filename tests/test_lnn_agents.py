@@ -269,15 +269,13 @@ def test_scan_unroll_changes_speed_only(name):
     rolled = tiny(name)
     state = quick_jit(rolled.init)(jax.random.key(6))
     batch, key = window(rolled, seed=7), jax.random.key(8)
-    value = lambda agent: quick_jit(jax.value_and_grad(
-        lambda p: agent.world_model_loss(p, state.target_q, batch, key)[0]))(state.params)
+    loss_of = lambda agent: lambda p: agent.world_model_loss(p, state.target_q, batch, key)[0]
+    value = lambda agent: quick_jit(jax.value_and_grad(loss_of(agent)))(state.params)
+    jaxpr = lambda agent: str(jax.make_jaxpr(loss_of(agent))(state.params))
     loss, grads = value(rolled)
     for steps in (3, rolled.sequence_length):
         unrolled = tiny(name, scan_unroll=steps)
-        jaxpr = str(jax.make_jaxpr(lambda p: unrolled.world_model_loss(p, state.target_q, batch, key)[0])(
-            state.params))
-        assert f"unroll={steps}" in jaxpr and f"unroll={steps}" not in str(jax.make_jaxpr(
-            lambda p: rolled.world_model_loss(p, state.target_q, batch, key)[0])(state.params))  # it reached the scan
+        assert f"unroll={steps}" in jaxpr(unrolled) and f"unroll={steps}" not in jaxpr(rolled)  # it reached the scan
         got_loss, got_grads = value(unrolled)
         np.testing.assert_allclose(float(got_loss), float(loss), rtol=1e-5)
         for got, want in zip(jax.tree_util.tree_leaves(got_grads), jax.tree_util.tree_leaves(grads), strict=True):
