@@ -19,6 +19,23 @@ def _options(record: dict) -> str:
     return ", ".join(f"{k}={v}" for k, v in options.items()) or "dm_control"
 
 
+def _ms(value: float | None) -> str:
+    return "—" if value is None else f"{value:.2f}"
+
+
+def _setting(payload: dict) -> str:
+    """What a training benchmark changed from the defaults: matmul precision, ``--set`` overrides other than the
+    walker defaults, XLA flags; "" for none."""
+    args, parts = payload.get("args", {}), []
+    if args.get("matmul_precision", "default") != "default":
+        parts.append(f"{args['matmul_precision']} products")
+    walker_defaults = {"input_transform=symlog", "lambda_=0", "rollout_steps=3"}
+    parts += [o for o in args.get("overrides") or [] if o not in walker_defaults]
+    if payload["env"].get("xla_flags"):
+        parts.append(f"XLA_FLAGS `{payload['env']['xla_flags']}`")
+    return f" ({'; '.join(parts)})" if parts else ""
+
+
 def plot_env_throughput(path: str) -> None:
     """ms per agent step versus batch, one line per (domain, solver setting), log-log."""
     import matplotlib
@@ -63,7 +80,7 @@ def plot_env_throughput(path: str) -> None:
 
 
 def main() -> None:
-    env_rows, cell_rows, train_rows = [], [], []
+    env_rows, cell_rows, train_rows, profile_rows = [], [], [], []
     for path in sorted(glob.glob(os.path.join(RESULTS, "*.json"))):
         with open(path) as f:
             payload = json.load(f)
@@ -78,14 +95,23 @@ def main() -> None:
                 )
         elif payload.get("benchmark") == "train_throughput":
             device = payload["env"]["device"]
-            precision = payload.get("args", {}).get("matmul_precision", "default")
-            suffix = "" if precision == "default" else f" ({precision} products)"
+            suffix = _setting(payload)
             for r in payload["results"]:
                 chunk = (f"{r['ms_per_iteration']:.2f} | {r['chunk_env_steps_per_s']:,.0f}" if "ms_per_iteration" in r
                          else "— | —")
                 train_rows.append(
-                    f"| {r['task']} | {r['agent']}{suffix} | {r['seeds']} | {r['envs']} | {r['act_ms']:.2f} | "
-                    f"{r['env_ms']:.2f} | {r['update_ms']:.2f} | {chunk} | {device} | {name} |")
+                    f"| {r['task']} | {r['agent']}{suffix} | {r['seeds']} | {r['envs']} | {_ms(r.get('act_ms'))} | "
+                    f"{_ms(r.get('env_ms'))} | {r['update_ms']:.2f} | {chunk} | {device} | {name} |")
+        elif payload.get("benchmark") == "profile_update":
+            args = payload.get("args", {})
+            for program, r in payload["results"].items():
+                categories = ", ".join(f"{k} {v['kernels_per_call']:.0f} / {v['ms_per_call']:.2f} ms"
+                                       for k, v in r["by_category"].items() if v["kernels_per_call"] >= 1)
+                profile_rows.append(
+                    f"| {args.get('task')} | {args.get('agent')}{_setting(payload)} | {args.get('seeds')} | "
+                    f"{program} | "
+                    f"{r['wall_ms_per_call']:.2f} | {r['busy_ms_per_call']:.2f} | {r['busy_fraction']:.2f} | "
+                    f"{r['kernels_per_call']:.0f} | {categories} | {payload['env']['device']} | {name} |")
         elif "results" in payload and payload["results"] and "forward_backward_ms_median" in payload["results"][0]:
             for r in payload["results"]:
                 peak = r.get("peak_bytes_in_use")
@@ -108,6 +134,11 @@ def main() -> None:
           "| device | file |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(train_rows))
+    print("\n## Where an update's time goes (benchmarks/profile_update.py): kernels of a traced call\n")
+    print("| task | agent | seeds | program | wall ms | busy ms | busy fraction | kernels / call | by category "
+          "(kernels / ms per call) | device | file |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("\n".join(profile_rows))
     with contextlib.redirect_stdout(sys.stderr):  # what importing matplotlib's plugins prints stays out of the table
         plot_env_throughput(os.path.join(RESULTS, "env_throughput.png"))
     print("\n![env throughput](env_throughput.png)")

@@ -83,7 +83,9 @@ class LNNConfig(TDMPC2Config):
     free_bits: float = -2.0  # floor of the OP-stoch per-step NLL, nats per dimension
     nll_beta: float = 1.0  # β-NLL weight stop_gradient(σ^(2β)) of the stochastic variants' NLL; 0 = plain NLL
     rollout_steps: int = 1  # K: depths of open-loop model losses (module docstring); 1 = the thesis
-    scan_unroll: int = 1  # encoder time steps per lax.scan iteration in the update (speed only; >= T + H: no loop)
+    # Encoder time steps per lax.scan iteration in the update (speed only; >= T + H + 1 leaves no loop). No faster
+    # on an H100 for walker (12.65 ms rolled, 12.87 fully unrolled: benchmarks/results/README.md, run 13).
+    scan_unroll: int = 1
 
     def __post_init__(self):
         super().__post_init__()
