@@ -23,14 +23,21 @@ def _ms(value: float | None) -> str:
     return "—" if value is None else f"{value:.2f}"
 
 
-def _setting(payload: dict) -> str:
-    """What a training benchmark changed from the defaults: matmul precision, ``--set`` overrides other than the
-    walker defaults, XLA flags; "" for none."""
+def _setting(payload: dict, task: str, agent: str) -> str:
+    """What a training benchmark of ``agent`` on ``task`` changed from the defaults: matmul precision, ``--set``
+    overrides that differ from the agent's task defaults (the walker defaults of the LNN agents), XLA flags; ""
+    for none."""
+    from lnnmpc.agents.registry import task_default_overrides
+    from lnnmpc.train.config import parse_overrides
+
     args, parts = payload.get("args", {}), []
     if args.get("matmul_precision", "default") != "default":
         parts.append(f"{args['matmul_precision']} products")
-    walker_defaults = {"input_transform=symlog", "lambda_=0", "rollout_steps=3"}
-    parts += [o for o in args.get("overrides") or [] if o not in walker_defaults]
+    defaults = task_default_overrides(agent, task)
+    for item in args.get("overrides") or []:
+        ((key, value),) = parse_overrides([item]).items()
+        if key not in defaults or defaults[key] != value:
+            parts.append(item)
     if payload["env"].get("xla_flags"):
         parts.append(f"XLA_FLAGS `{payload['env']['xla_flags']}`")
     return f" ({'; '.join(parts)})" if parts else ""
@@ -95,8 +102,8 @@ def main() -> None:
                 )
         elif payload.get("benchmark") == "train_throughput":
             device = payload["env"]["device"]
-            suffix = _setting(payload)
             for r in payload["results"]:
+                suffix = _setting(payload, r["task"], r["agent"])
                 chunk = (f"{r['ms_per_iteration']:.2f} | {r['chunk_env_steps_per_s']:,.0f}" if "ms_per_iteration" in r
                          else "— | —")
                 train_rows.append(
@@ -107,9 +114,9 @@ def main() -> None:
             for program, r in payload["results"].items():
                 categories = ", ".join(f"{k} {v['kernels_per_call']:.0f} / {v['ms_per_call']:.2f} ms"
                                        for k, v in r["by_category"].items() if v["kernels_per_call"] >= 1)
+                setting = _setting(payload, args["task"], args["agent"])
                 profile_rows.append(
-                    f"| {args.get('task')} | {args.get('agent')}{_setting(payload)} | {args.get('seeds')} | "
-                    f"{program} | "
+                    f"| {args['task']} | {args['agent']}{setting} | {args.get('seeds')} | {program} | "
                     f"{r['wall_ms_per_call']:.2f} | {r['busy_ms_per_call']:.2f} | {r['busy_fraction']:.2f} | "
                     f"{r['kernels_per_call']:.0f} | {categories} | {payload['env']['device']} | {name} |")
         elif "results" in payload and payload["results"] and "forward_backward_ms_median" in payload["results"][0]:
