@@ -9,7 +9,10 @@ steps, command buffers) or to a few long ones (make those faster). Per program i
 * ``busy_ms_per_call``: the union of the kernels' intervals per call, against ``wall_ms_per_call`` (host clock,
   dispatch to ready); ``busy_fraction`` = busy / wall: low means launch gaps dominate;
 * ``by_category``: matmul / fusion / reduce / copy / other kernels (count and time per call);
-* ``top_kernels``: the kernels with the most time per call (name, launches and µs per call, mean µs).
+* ``top_kernels``: the kernels with the most time per call (name, launches and µs per call, mean µs);
+* ``by_scope``: kernels and time per call by the update's named scopes (``SCOPES``: replay sample, encoder
+  burn-in and window, TD targets, model losses, optimisers, ...), forward and backward apart, from the
+  ``op_name`` of the HLO instruction each kernel ran.
 
 On a machine without an accelerator the trace has no device, and the XLA executor threads of the host stand in
 (their ops rather than kernels), which is enough to check the script.
@@ -27,6 +30,7 @@ import glob
 import gzip
 import json
 import os
+import re
 import sys
 import tempfile
 import time
@@ -46,6 +50,10 @@ CATEGORIES = (  # first match wins; names of cuBLAS/cuDNN/CUTLASS products and X
     ("fusion", ("fusion",)),
 )
 HOST_EXECUTOR_THREADS = ("XLA", "Xla", "xla")  # thread-name markers of the CPU client's executor threads
+# The named scopes of the update (loop._update, TDMPC2.update, LNNTDMPC2's loss), innermost found wins.
+SCOPES = ("replay_sample", "keep_if_valid", "world_model_grad", "encoder_burn_in", "encoder_window", "td_targets",
+          "model_losses", "model_optimizer", "policy_grad", "policy_optimizer")
+_INSTRUCTION = re.compile(r'^\s*(?:ROOT )?%?([\w.\-]+) = [^\n]*?metadata=\{[^}]*op_name="([^"]+)"', re.M)
 
 
 def kernel_category(name: str) -> str:
@@ -55,6 +63,23 @@ def kernel_category(name: str) -> str:
         if any(marker in lower for marker in markers):
             return category
     return "other"
+
+
+def hlo_op_names(hlo_text: str) -> dict[str, str]:
+    """Each instruction of a compiled HLO module (``compiled.as_text()``) with its ``op_name`` metadata, keyed by
+    the name a kernel of it carries in a trace (dots and dashes as underscores, e.g. ``loop_add_fusion_2``)."""
+    return {re.sub(r"[.\-]", "_", name): op_name for name, op_name in _INSTRUCTION.findall(hlo_text)}
+
+
+def scope_label(op_name: str | None) -> str:
+    """``"<innermost of SCOPES> forward|backward"`` for an op's ``op_name`` (backward: under a ``transpose``),
+    ``"unscoped"`` for an op outside them, ``"unknown"`` for a kernel that matched no instruction."""
+    if op_name is None:
+        return "unknown"
+    found = [word for word in re.findall(r"\w+", op_name) if word in SCOPES]
+    if not found:
+        return "unscoped"
+    return f"{found[-1]} {'backward' if 'transpose(' in op_name else 'forward'}"
 
 
 def interval_union(intervals: list[tuple[float, float]]) -> float:
@@ -94,17 +119,30 @@ def kernel_events(events: list[dict]) -> tuple[list[dict], str]:
     return [e for e in complete if (e["pid"], e.get("tid")) in executor], "host executor threads"
 
 
-def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: int = 25) -> dict:
-    """Per-call totals of a trace's kernels (``kernel_events``) over ``calls`` calls timed at ``wall_s``."""
+def kernel_op_name(event: dict, op_names: dict[str, str]) -> str | None:
+    """The ``op_name`` of the instruction a kernel event ran: by the event's ``hlo_op`` argument where the trace
+    gives one (library kernels such as cuBLAS's), else by its own name (XLA's kernels are named after it)."""
+    for name in (event.get("args", {}).get("hlo_op"), event["name"]):
+        if name and re.sub(r"[.\-]", "_", name) in op_names:
+            return op_names[re.sub(r"[.\-]", "_", name)]
+    return None
+
+
+def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: int = 25,
+                      op_names: dict[str, str] | None = None) -> dict:
+    """Per-call totals of a trace's kernels (``kernel_events``) over ``calls`` calls timed at ``wall_s``; with
+    ``op_names`` (:func:`hlo_op_names` of the program) also per named scope of the update (``by_scope``)."""
     kernels, source = kernel_events(events)
     per_name = collections.defaultdict(lambda: [0, 0.0])
     per_category = collections.defaultdict(lambda: [0, 0.0])
+    per_scope = collections.defaultdict(lambda: [0, 0.0])
     for e in kernels:
         per_name[e["name"]][0] += 1
         per_name[e["name"]][1] += e["dur"]
-        category = per_category[kernel_category(e["name"])]
-        category[0] += 1
-        category[1] += e["dur"]
+        for table, key in ((per_category, kernel_category(e["name"])),
+                           (per_scope, scope_label(kernel_op_name(e, op_names or {})))):
+            table[key][0] += 1
+            table[key][1] += e["dur"]
     busy_us = interval_union([(e["ts"], e["ts"] + e["dur"]) for e in kernels])
     wall_ms = 1e3 * sum(wall_s) / len(wall_s)
     busy_ms = busy_us / 1e3 / calls
@@ -124,6 +162,9 @@ def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: 
                         for name, (n, us) in sorted(per_category.items(), key=lambda item: -item[1][1])},
         "top_kernels": [{"name": name, "launches_per_call": n / calls, "us_per_call": us / calls, "mean_us": us / n}
                         for name, (n, us) in ranked],
+        **({"by_scope": {name: {"kernels_per_call": n / calls, "ms_per_call": us / 1e3 / calls}
+                         for name, (n, us) in sorted(per_scope.items(), key=lambda item: -item[1][1])}}
+           if op_names else {}),
     }
 
 
@@ -139,7 +180,8 @@ def load_trace(directory: str) -> list[dict]:
 
 
 def profile_call(fn, args: tuple, calls: int, warmup: int = 2, top: int = 25) -> dict:
-    """Warms ``fn(*args)`` up, traces ``calls`` calls (each waited for) and summarizes the trace's kernels."""
+    """Warms ``fn(*args)`` up, traces ``calls`` calls (each waited for) and summarizes the trace's kernels, by
+    named scope too where ``fn`` is compiled (``jax.jit(f).lower(...).compile()``: its HLO names the scopes)."""
     for _ in range(warmup):
         jax.block_until_ready(fn(*args))
     wall = []
@@ -150,7 +192,8 @@ def profile_call(fn, args: tuple, calls: int, warmup: int = 2, top: int = 25) ->
                 jax.block_until_ready(fn(*args))
                 wall.append(time.perf_counter() - start)
         events = load_trace(directory)
-    return summarize_kernels(events, calls, wall, top)
+    op_names = hlo_op_names(fn.as_text()) if hasattr(fn, "as_text") else None  # a compiled program's HLO
+    return summarize_kernels(events, calls, wall, top, op_names=op_names)
 
 
 def programs(args) -> dict:
@@ -162,7 +205,8 @@ def programs(args) -> dict:
     if "update" in args.what:
         out["update"] = update_call(loop, ts)
     if "act" in args.what:
-        out["act"] = act_call(loop.agent, ts)
+        act, act_args = act_call(loop.agent, ts)
+        out["act"] = act.lower(*act_args).compile(), act_args
     return out
 
 
@@ -196,6 +240,8 @@ def main(argv=None):
               f"({summary['source']})  {summary['kernels_per_call']:7.0f} kernels/call", flush=True)
         for category, row in summary["by_category"].items():
             print(f"    {category:8s} {row['kernels_per_call']:7.0f} kernels  {row['ms_per_call']:8.3f} ms", flush=True)
+        for scope, row in summary.get("by_scope", {}).items():
+            print(f"    {scope:28s} {row['kernels_per_call']:7.0f} kernels  {row['ms_per_call']:8.3f} ms", flush=True)
         for row in summary["top_kernels"][:10]:
             print(f"    {row['us_per_call']:9.1f} us  x{row['launches_per_call']:<6.0f} {row['name'][:90]}", flush=True)
     print(f"wrote {out}")

@@ -86,3 +86,66 @@ def test_profile_call_traces_a_jitted_function_on_this_machine():
     assert summary["calls"] == 2 and summary["kernels_per_call"] >= 1
     assert 0 < summary["busy_ms_per_call"] and summary["wall_ms_per_call"] > 0
     assert summary["processes"] and len(summary["top_kernels"]) <= 5
+
+
+def scoped_update(w, x):
+    """A toy update with the profile's named scopes: a scanned recurrence under a gradient, then an optimiser."""
+    import jax
+    import jax.numpy as jnp
+
+    def loss(w):
+        with jax.named_scope("encoder_window"):
+            _, hs = jax.lax.scan(lambda h, xi: (jnp.tanh(h @ w + xi),) * 2, x[0], x)
+        with jax.named_scope("model_losses"):
+            return jnp.sum(hs ** 2)
+
+    with jax.named_scope("world_model_grad"):
+        grad = jax.grad(loss)(w)
+    with jax.named_scope("model_optimizer"):
+        return w - 0.1 * grad
+
+
+def test_scope_labels_from_a_compiled_programs_hlo():
+    import jax
+    import jax.numpy as jnp
+
+    compiled = jax.jit(jax.vmap(scoped_update)).lower(jnp.ones((3, 4, 4)), jnp.ones((3, 5, 2, 4))).compile()
+    op_names = pu.hlo_op_names(compiled.as_text())
+    labels = {pu.scope_label(op) for op in op_names.values()}
+    # the scan's loop forward and its transpose, the loss, the optimiser step; innermost scope wins
+    assert {"encoder_window forward", "encoder_window backward", "model_optimizer forward"} <= labels
+    assert not any(label.startswith("world_model_grad") and "while" in op
+                   for op, label in ((op, pu.scope_label(op)) for op in op_names.values()))
+    assert all("." not in name and "-" not in name for name in op_names)  # keyed as trace kernels name them
+    assert pu.scope_label(None) == "unknown" and pu.scope_label("jit(f)/add") == "unscoped"
+    assert pu.scope_label("jit(f)/vmap(policy_grad)/transpose(jvp(model_losses))/mul") == "model_losses backward"
+
+
+def test_summary_by_scope_matches_kernels_by_name_or_hlo_op():
+    op_names = {"loop_fusion": "jit(u)/world_model_grad/jvp(encoder_window)/while/body/add",
+                "custom_call_3": "jit(u)/world_model_grad/transpose(jvp(encoder_window))/dot_general"}
+    events = gpu_trace()
+    events[6] = {**events[6], "args": {"hlo_op": "custom-call.3"}}  # the first cutlass_gemm ran custom-call.3
+    summary = pu.summarize_kernels(events, calls=2, wall_s=[0.05, 0.03], op_names=op_names)
+    assert summary["by_scope"] == {
+        "encoder_window forward": {"kernels_per_call": 1.0, "ms_per_call": pytest.approx((10 + 4) / 1e3 / 2)},
+        "unknown": {"kernels_per_call": 1.0, "ms_per_call": pytest.approx((2 + 10) / 1e3 / 2)},
+        "encoder_window backward": {"kernels_per_call": 0.5, "ms_per_call": pytest.approx(10 / 1e3 / 2)},
+    }
+    assert "by_scope" not in pu.summarize_kernels(gpu_trace(), calls=2, wall_s=[0.05, 0.03])
+
+
+def test_the_liquid_update_carries_every_scope_the_profile_sums():
+    """Each name of ``SCOPES`` labels ops of a (small) cfc-zp-det update, burn-in and window both ways: renaming
+    a scope in the agent without the profile (or the reverse) fails here."""
+    import jax
+    from train_throughput import build_loop
+
+    loop = build_loop("cartpole-balance", "cfc-zp-det", 1, True, {})
+    keys = jax.random.split(jax.random.key(0), 1)
+    ts = jax.eval_shape(jax.vmap(loop.init), keys)  # shapes suffice: the HLO before XLA's passes names the scopes
+    hlo = jax.jit(jax.vmap(loop._update)).lower(ts, keys).as_text(dialect="hlo", debug_info=True)
+    labels = {pu.scope_label(op) for op in pu.hlo_op_names(hlo).values()}
+    assert {label.rsplit(" ", 1)[0] for label in labels} >= set(pu.SCOPES)
+    assert {"encoder_window forward", "encoder_window backward", "encoder_burn_in forward"} <= labels
+    assert "encoder_burn_in backward" not in labels  # the burn-in runs under stop_gradient

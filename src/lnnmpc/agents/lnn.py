@@ -157,9 +157,12 @@ class LNNTDMPC2(TDMPC2):
         T = self.config.burn_in
         h = batch["h_prev"][0]
         if T:
-            h = self.encode_sequence(params, h, batch["obs"][:T], batch["prev_action"][:T], batch["dt"][:T])[-1]
+            with jax.named_scope("encoder_burn_in"):
+                h = self.encode_sequence(params, h, batch["obs"][:T], batch["prev_action"][:T],
+                                         batch["dt"][:T])[-1]
         h = jax.lax.stop_gradient(h)
-        return self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
+        with jax.named_scope("encoder_window"):
+            return self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
 
     # -------------------------------------------------------------------------------------- losses
     def prediction_loss(self, params, z: jax.Array, action: jax.Array,
@@ -188,17 +191,20 @@ class LNNTDMPC2(TDMPC2):
         k_pi, k_heads, k_drop = jax.random.split(key, 3)
         zs = self.latents(params, batch)
         next_z = jax.lax.stop_gradient(zs[1:])
-        next_action = self._policy_sample(params, next_z, k_pi).action
-        next_q = self._q_values(params, next_z, next_action, self._two_heads(k_heads), q_params=target_q)
-        td_target = jax.lax.stop_gradient(lambda_returns(reward, jnp.min(next_q, axis=0), cfg.gamma, cfg.lambda_))
+        with jax.named_scope("td_targets"):
+            next_action = self._policy_sample(params, next_z, k_pi).action
+            next_q = self._q_values(params, next_z, next_action, self._two_heads(k_heads), q_params=target_q)
+            td_target = jax.lax.stop_gradient(lambda_returns(reward, jnp.min(next_q, axis=0), cfg.gamma,
+                                                             cfg.lambda_))
         target = next_z if cfg.model.objective == "zp" else batch["obs"][T + 1:]
 
         depths, z = [], zs[:-1]  # z: the depth-k latents of positions k..H-1
         for k in range(cfg.rollout_steps):
-            if k:
-                z = self._apply(params, z[:-1], action[k - 1:-1], method="transition")
-            depths.append(self._depth_losses(params, z, action[k:], reward[k:], td_target[k:], target[k:],
-                                             jax.random.fold_in(k_drop, k) if k else k_drop))
+            with jax.named_scope("model_losses"):
+                if k:
+                    z = self._apply(params, z[:-1], action[k - 1:-1], method="transition")
+                depths.append(self._depth_losses(params, z, action[k:], reward[k:], td_target[k:], target[k:],
+                                                 jax.random.fold_in(k_drop, k) if k else k_drop))
         losses = {name: sum(d[0][name] for d in depths) / len(depths) for name in depths[0][0]}
         total = (cfg.consistency_coef * losses["prediction_loss"] + cfg.reward_coef * losses["reward_loss"]
                  + cfg.value_coef * losses["value_loss"])

@@ -208,18 +208,24 @@ class TDMPC2:
     # -------------------------------------------------------------------------------------- update
     def update(self, state: AgentState, batch: dict, key: jax.Array) -> tuple[AgentState, dict]:
         """One TD-MPC2 update on ``batch`` (obs (H+1, B, d), action (H+1, B, A), reward (H+1, B))."""
+        # The named scopes only label the compiled ops (benchmarks/profile_update.py sums kernel time by them).
         k_model, k_policy = jax.random.split(key)
-        grads, (zs, metrics) = jax.grad(self.world_model_loss, has_aux=True)(
-            state.params, state.target_q, batch, k_model)
-        metrics["grad_norm"] = optax.tree.norm(grads)
-        if self.config.joint_grad_clip:  # the groups' own clips (make_optimizers) then never bind
-            grads = clip_jointly(grads, self.config.grad_clip_norm, frozen=("policy_head",))
-        updates, model_opt = self.model_tx.update(grads, state.model_opt, state.params)
-        params = optax.apply_updates(state.params, updates)
-        pi_grads, (scale, pi_metrics) = jax.grad(self.policy_loss, has_aux=True)(params, zs, state.scale, k_policy)
-        updates, policy_opt = self.policy_tx.update(pi_grads, state.policy_opt, params)
-        params = optax.apply_updates(params, updates)
-        target_q = M.polyak(state.target_q, params["q_heads"], self.config.tau)
+        with jax.named_scope("world_model_grad"):
+            grads, (zs, metrics) = jax.grad(self.world_model_loss, has_aux=True)(
+                state.params, state.target_q, batch, k_model)
+        with jax.named_scope("model_optimizer"):
+            metrics["grad_norm"] = optax.tree.norm(grads)
+            if self.config.joint_grad_clip:  # the groups' own clips (make_optimizers) then never bind
+                grads = clip_jointly(grads, self.config.grad_clip_norm, frozen=("policy_head",))
+            updates, model_opt = self.model_tx.update(grads, state.model_opt, state.params)
+            params = optax.apply_updates(state.params, updates)
+        with jax.named_scope("policy_grad"):
+            pi_grads, (scale, pi_metrics) = jax.grad(self.policy_loss, has_aux=True)(
+                params, zs, state.scale, k_policy)
+        with jax.named_scope("policy_optimizer"):
+            updates, policy_opt = self.policy_tx.update(pi_grads, state.policy_opt, params)
+            params = optax.apply_updates(params, updates)
+            target_q = M.polyak(state.target_q, params["q_heads"], self.config.tau)
         new_state = AgentState(params=params, target_q=target_q, model_opt=model_opt, policy_opt=policy_opt,
                                scale=scale, updates=state.updates + 1)
         return new_state, {**metrics, **pi_metrics}

@@ -109,10 +109,12 @@ class TrainingLoop:
 
     def _update(self, ts: TrainState, key: jax.Array):
         k_sample, k_update = jax.random.split(key)
-        records, valid = replay_sample(ts.replay, k_sample, self.config.batch_size, self.agent.sequence_length)
+        with jax.named_scope("replay_sample"):
+            records, valid = replay_sample(ts.replay, k_sample, self.config.batch_size, self.agent.sequence_length)
         agent, metrics = self.agent.update(ts.agent, records, k_update)
         # Keep the old agent if the buffer had no valid window yet (never after the seed phase).
-        agent = jax.tree_util.tree_map(lambda new, old: jnp.where(valid.all(), new, old), agent, ts.agent)
+        with jax.named_scope("keep_if_valid"):
+            agent = jax.tree_util.tree_map(lambda new, old: jnp.where(valid.all(), new, old), agent, ts.agent)
         return ts.replace(agent=agent), metrics
 
     def seed_chunk(self, ts: TrainState, length: int) -> tuple[TrainState, dict]:
