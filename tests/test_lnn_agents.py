@@ -255,6 +255,27 @@ def test_rollout_losses_are_taken_on_the_planners_own_latents(name):
     assert float(optax.tree.norm(grads["predictor"])) > 0 and float(optax.tree.norm(grads["encoder"])) > 0
 
 
+@pytest.mark.parametrize("name", ["cfc-zp-det", "ltc-op-det"])
+def test_three_depths_are_split_back_at_their_own_positions(name):
+    """``rollout_steps`` K = 3 stacks the depths' latents (H, H - 1, H - 2 positions) for one pass of the heads:
+    the deepest depth's prediction loss is that of the transition applied twice, at positions 2..H-1, by hand."""
+    agent = tiny(name, rollout_steps=3)
+    state = quick_jit(agent.init)(jax.random.key(9))
+    batch, key, T, H = window(agent, seed=10), jax.random.key(11), agent.config.burn_in, agent.config.horizon
+    _, (_, metrics) = quick_jit(agent.world_model_loss)(state.params, state.target_q, batch, key)
+
+    def depth_two(params):
+        apply = lambda *args, **kw: agent.model.apply({"params": params}, *args, **kw)
+        zs, action = agent.latents(params, batch), batch["action"][T:T + H]
+        target = zs[1:] if agent.config.model.objective == "zp" else batch["obs"][T + 1:]
+        z1 = apply(zs[:H - 1], action[:H - 1], method="transition")  # depth 1 at positions 1..H-1
+        z2 = apply(z1[:-1], action[1:H - 1], method="transition")  # depth 2 at positions 2..H-1
+        return jnp.mean((apply(z2, action[2:], method="predict")[0] - target[2:]) ** 2)
+
+    np.testing.assert_allclose(float(metrics["rollout_prediction_loss"]), float(quick_jit(depth_two)(state.params)),
+                               rtol=1e-5)
+
+
 def test_rollout_steps_are_validated():
     with pytest.raises(ValueError, match="rollout_steps=0 is invalid; expected an integer >= 1"):
         tiny("cfc-zp-det", rollout_steps=0)

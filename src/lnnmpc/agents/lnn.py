@@ -28,7 +28,9 @@ state h_{t−1} the actor held before reading o_t, and a_{t−1} (zeros at an ep
   ẑ^k_t = T(ẑ^{k−1}_{t−1}, a_{t−1}) (the predictor's mean; OP through the encoder with Δt = 1, Algorithm 5),
   for t = k..H−1. Depth k ∈ 0..K−1 predicts the next latent / observation of its positions and carries the
   reward and Q losses of its positions; each loss is the mean over its depths, gradients flow through the
-  rollout. With K = 1 the planner scores action sequences with heads that never saw a predicted latent, and its
+  rollout. The depths are stacked on the time axis for one pass of the heads and losses (fewer kernels; with
+  K = 1 bit for bit the unstacked loss; with K > 1 one Q-dropout mask over the stack instead of one per depth).
+  With K = 1 the planner scores action sequences with heads that never saw a predicted latent, and its
   H_plan = 10 steps go that far off the encoder's latents.
 
 Acting (:meth:`LNNTDMPC2.act`): the encoder reads [o_t, a_{t−1}] with Δt_t, then MPPI plans from h_t. The
@@ -198,13 +200,20 @@ class LNNTDMPC2(TDMPC2):
                                                              cfg.lambda_))
         target = next_z if cfg.model.objective == "zp" else batch["obs"][T + 1:]
 
-        depths, z = [], zs[:-1]  # z: the depth-k latents of positions k..H-1
-        for k in range(cfg.rollout_steps):
+        # Every depth's latents (depth k: positions k..H-1) and inputs stacked on the time axis, so the heads and
+        # losses run once for all K depths (one set of kernels, not K), then are split back per depth.
+        K, z, by_depth = cfg.rollout_steps, zs[:-1], [zs[:-1]]
+        for k in range(1, K):
             with jax.named_scope("model_losses"):
-                if k:
-                    z = self._apply(params, z[:-1], action[k - 1:-1], method="transition")
-                depths.append(self._depth_losses(params, z, action[k:], reward[k:], td_target[k:], target[k:],
-                                                 jax.random.fold_in(k_drop, k) if k else k_drop))
+                z = self._apply(params, z[:-1], action[k - 1:-1], method="transition")
+            by_depth.append(z)
+        stack = lambda x: jnp.concatenate([x[k:] for k in range(K)]) if K > 1 else x
+        with jax.named_scope("model_losses"):
+            per_step = self._step_losses(params, jnp.concatenate(by_depth) if K > 1 else z, stack(action),
+                                         stack(reward), stack(td_target), stack(target), k_drop)
+            positions = lambda a, b: jax.tree_util.tree_map(lambda x: x[..., a:b], per_step)  # time axis last
+            starts = [sum(H - j for j in range(k)) for k in range(K + 1)]  # depth k: H - k positions
+            depths = [self._depth_average(positions(a, b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
         losses = {name: sum(d[0][name] for d in depths) / len(depths) for name in depths[0][0]}
         total = (cfg.consistency_coef * losses["prediction_loss"] + cfg.reward_coef * losses["reward_loss"]
                  + cfg.value_coef * losses["value_loss"])
@@ -213,22 +222,28 @@ class LNNTDMPC2(TDMPC2):
             metrics["rollout_prediction_loss"] = depths[-1][0]["prediction_loss"]
         return total, (jax.lax.stop_gradient(zs), metrics)
 
-    def _depth_losses(self, params, z, action, reward, td_target, target, key):
-        """Prediction, reward and value losses of latents z (n, B, N) of one depth, with their actions (n, B, A),
-        rewards and TD targets (n, B) and prediction targets (n, B, D); each ρ^t-weighted and averaged over the
-        n positions. Returns (losses, per-step diagnostics of the prediction averaged the same way)."""
-        cfg, num_bins, n = self.config, self.config.model.num_bins, z.shape[0]
-        weights = M.discounted_weights(n, cfg.rho)
-        average = lambda per_step: jnp.sum(weights * per_step) / n
-        per_step, info = self.prediction_loss(params, z, action, target)
+    def _step_losses(self, params, z, action, reward, td_target, target, key) -> dict:
+        """Per-position losses of latents z (n, B, N) with their actions (n, B, A), rewards and TD targets (n, B)
+        and prediction targets (n, B, D): ``prediction`` (n,), ``reward`` (n,), ``value`` (num_q, n) and the
+        prediction's diagnostics ``info`` {name: (n,)}; one Q-head dropout mask from ``key``."""
+        cfg, num_bins = self.config, self.config.model.num_bins
+        prediction, info = self.prediction_loss(params, z, action, target)
         reward_ce = M.soft_cross_entropy(self._apply(params, z, action, method="reward"), reward, num_bins,
                                          cfg.vmin, cfg.vmax).mean(axis=1)
         q_logits = self._apply(params, z, action, False, method="q", rngs={"dropout": key})
         value_ce = M.soft_cross_entropy(q_logits, td_target[None], num_bins, cfg.vmin, cfg.vmax).mean(axis=2)
-        losses = {"prediction_loss": average(per_step), "reward_loss": average(reward_ce),
+        return {"prediction": prediction, "reward": reward_ce, "value": value_ce, "info": info}
+
+    def _depth_average(self, per_step: dict) -> tuple[dict, dict]:
+        """One depth's losses from its :meth:`_step_losses` (n positions): each ρ^t-weighted and averaged over
+        the n positions; returns (losses, the prediction's diagnostics averaged the same way)."""
+        cfg, n = self.config, per_step["prediction"].shape[0]
+        weights = M.discounted_weights(n, cfg.rho)
+        average = lambda x: jnp.sum(weights * x) / n
+        losses = {"prediction_loss": average(per_step["prediction"]), "reward_loss": average(per_step["reward"]),
                   # one division, as before rollout_steps existed: K = 1 stays bit-for-bit the old loss
-                  "value_loss": jnp.sum(weights * value_ce.sum(axis=0)) / (n * cfg.model.num_q)}
-        return losses, {k: average(v) for k, v in info.items()}
+                  "value_loss": jnp.sum(weights * per_step["value"].sum(axis=0)) / (n * cfg.model.num_q)}
+        return losses, {k: average(v) for k, v in per_step["info"].items()}
 
     # ------------------------------------------------------------ acting protocol (agents/registry.py)
     @property
