@@ -65,10 +65,16 @@ def kernel_category(name: str) -> str:
     return "other"
 
 
+def trace_name(instruction: str) -> str:
+    """The name a kernel of an HLO instruction carries in a trace: dots and dashes as underscores
+    (``loop_add_fusion.2`` -> ``loop_add_fusion_2``)."""
+    return re.sub(r"[.\-]", "_", instruction)
+
+
 def hlo_op_names(hlo_text: str) -> dict[str, str]:
     """Each instruction of a compiled HLO module (``compiled.as_text()``) with its ``op_name`` metadata, keyed by
-    the name a kernel of it carries in a trace (dots and dashes as underscores, e.g. ``loop_add_fusion_2``)."""
-    return {re.sub(r"[.\-]", "_", name): op_name for name, op_name in _INSTRUCTION.findall(hlo_text)}
+    :func:`trace_name`."""
+    return {trace_name(name): op_name for name, op_name in _INSTRUCTION.findall(hlo_text)}
 
 
 def scope_label(op_name: str | None) -> str:
@@ -123,8 +129,8 @@ def kernel_op_name(event: dict, op_names: dict[str, str]) -> str | None:
     """The ``op_name`` of the instruction a kernel event ran: by the event's ``hlo_op`` argument where the trace
     gives one (library kernels such as cuBLAS's), else by its own name (XLA's kernels are named after it)."""
     for name in (event.get("args", {}).get("hlo_op"), event["name"]):
-        if name and re.sub(r"[.\-]", "_", name) in op_names:
-            return op_names[re.sub(r"[.\-]", "_", name)]
+        if name and trace_name(name) in op_names:
+            return op_names[trace_name(name)]
     return None
 
 

@@ -207,10 +207,10 @@ class LNNTDMPC2(TDMPC2):
             with jax.named_scope("model_losses"):
                 z = self._apply(params, z[:-1], action[k - 1:-1], method="transition")
             by_depth.append(z)
-        stack = lambda x: jnp.concatenate([x[k:] for k in range(K)]) if K > 1 else x
+        stack = lambda x: jnp.concatenate([x[k:] for k in range(K)])
         with jax.named_scope("model_losses"):
-            per_step = self._step_losses(params, jnp.concatenate(by_depth) if K > 1 else z, stack(action),
-                                         stack(reward), stack(td_target), stack(target), k_drop)
+            per_step = self._step_losses(params, jnp.concatenate(by_depth), stack(action), stack(reward),
+                                         stack(td_target), stack(target), k_drop)
             positions = lambda a, b: jax.tree_util.tree_map(lambda x: x[..., a:b], per_step)  # time axis last
             starts = [sum(H - j for j in range(k)) for k in range(K + 1)]  # depth k: H - k positions
             depths = [self._depth_average(positions(a, b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
