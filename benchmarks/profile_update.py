@@ -129,8 +129,8 @@ def kernel_op_name(event: dict, op_names: dict[str, str]) -> str | None:
     """The ``op_name`` of the instruction a kernel event ran: by the event's ``hlo_op`` argument where the trace
     gives one (library kernels such as cuBLAS's), else by its own name (XLA's kernels are named after it)."""
     for name in (event.get("args", {}).get("hlo_op"), event["name"]):
-        if name and trace_name(name) in op_names:
-            return op_names[trace_name(name)]
+        if name and (op_name := op_names.get(trace_name(name))) is not None:
+            return op_name
     return None
 
 

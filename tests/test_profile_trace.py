@@ -149,3 +149,42 @@ def test_the_liquid_update_carries_every_scope_the_profile_sums():
     assert {label.rsplit(" ", 1)[0] for label in labels} >= set(pu.SCOPES)
     assert {"encoder_window forward", "encoder_window backward", "encoder_burn_in forward"} <= labels
     assert "encoder_burn_in backward" not in labels  # the burn-in runs under stop_gradient
+
+
+BACK = 'metadata={op_name="jit(u)/transpose(jvp(encoder_window))/while/body/'  # a scan's backward loop
+OPT = 'metadata={op_name="jit(u)/model_optimizer/'
+HLO = '''HloModule jit_update
+
+%fused_add (p0: f32[4]) -> f32[4] {
+  %p0 = f32[4]{0} parameter(0)
+  ROOT %add.1 = f32[4]{0} add(f32[4]{0} %p0, f32[4]{0} %p0), metadata={op_name="jit(u)/model_losses/add"}
+}
+
+%body (state: (s32[], f32[4])) -> (s32[], f32[4]) {
+  %state = (s32[], f32[4]{0}) parameter(0)
+  %h = f32[4]{0} get-tuple-element((s32[], f32[4]{0}) %state), index=1
+  %loop_add_fusion.2 = f32[4]{0} fusion(f32[4]{0} %h), kind=kLoop, calls=%fused_add, BACKadd"}
+  %copy.3 = f32[4]{0} copy(f32[4]{0} %loop_add_fusion.2), BACKcopy"}
+  ROOT %tuple.1 = (s32[], f32[4]{0}) tuple(s32[] %i, f32[4]{0} %copy.3)
+}
+
+ENTRY %main (x: f32[4]) -> f32[4] {
+  %x = f32[4]{0} parameter(0)
+  %while.1 = (s32[], f32[4]{0}) while((s32[], f32[4]{0}) %init), condition=%cond, body=%body
+  %custom-call.3 = f32[4]{0} custom-call(f32[4]{0} %x), custom_call_target="gemm", OPTdot_general"}
+  ROOT %multiply_fusion = f32[4]{0} fusion(f32[4]{0} %x), kind=kLoop, calls=%fused_add
+}
+'''.replace("BACK", BACK).replace("OPT", OPT)
+
+
+def test_launched_ops_counts_entry_and_loop_bodies_but_not_fused_computations():
+    import update_kernels as uk
+
+    counts = uk.launched_ops(HLO)
+    # the loop body's fusion and copy, the entry's custom call and fusion; not the fused add, not the while,
+    # parameters, get-tuple-element or tuple
+    assert counts["by_kind"] == {"fusion": 2, "copy": 1, "custom-call": 1}
+    assert counts["ops"] == 4
+    assert counts["by_scope"] == {"encoder_window backward": 2, "model_optimizer forward": 1, "unknown": 1}
+    op_names = pu.hlo_op_names(HLO)
+    assert op_names["loop_add_fusion_2"].endswith("while/body/add") and "custom_call_3" in op_names
