@@ -292,6 +292,44 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     assert "plain run (file it by hand): runs/batch/plain-run" in result.stdout
 
 
+def test_ingest_batch_never_replaces_a_longer_filed_run_with_a_shorter_copy(tmp_path):
+    """A run killed early on the device (fewer env steps than the copy filed before) is kept out of study-runs/
+    unless FORCE=1; a copy that reached as far or further replaces the filed one; a new folder is always filed."""
+    import subprocess
+    import sys
+    import tarfile
+
+    def batch_tar(name, runs):
+        batch = tmp_path / name
+        for rel, last in runs.items():
+            _fake_run(str(batch / "experiments" / rel), last, checkpoint=False)
+        with tarfile.open(tmp_path / f"{name}.tar.gz", "w:gz") as tar:
+            tar.add(batch, arcname=".")
+        return str(tmp_path / f"{name}.tar.gz")
+
+    def last_step(rel):
+        with open(work / "experiments" / "results" / "study-runs" / rel / "eval.csv", newline="") as f:
+            return max(int(row["env_step"]) for row in csv.DictReader(f))
+
+    work = tmp_path / "work"
+    work.mkdir()
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "ingest_batch.sh")
+    env = {**os.environ, "PYTHON": sys.executable, "JAX_PLATFORMS": "cpu"}
+    long_run, other = "acrobot-swingup/cfc-zp-det/clean-seeds3-envs8", "cartpole-swingup/tdmpc2/clean-seeds3-envs8"
+    first = batch_tar("first", {long_run: 164_688})
+    assert subprocess.run(["bash", script, first], cwd=work, env=env, timeout=120).returncode == 0
+    shorter = batch_tar("shorter", {long_run: 20_976, other: 40_000})
+    result = subprocess.run(["bash", script, shorter], cwd=work, env=env, timeout=120, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "kept     experiments/results/study-runs/" + long_run in result.stdout
+    assert (last_step(long_run), last_step(other)) == (164_688, 40_000)
+    forced = subprocess.run(["bash", script, shorter], cwd=work, env={**env, "FORCE": "1"}, timeout=120)
+    assert forced.returncode == 0 and last_step(long_run) == 20_976
+    longer = batch_tar("longer", {long_run: 212_592})
+    assert subprocess.run(["bash", script, longer], cwd=work, env=env, timeout=120).returncode == 0
+    assert last_step(long_run) == 212_592
+
+
 def test_summarize_against_hand_computation():
     returns = np.array([[100.0, 200.0, 300.0], [400.0, 500.0, 600.0]])
     s = summarize(returns)

@@ -5,7 +5,8 @@
 #
 # - every study run folder of the batch (runs/batch/experiments/<task>/<agent>/<condition>, no checkpoints) is
 #   copied into experiments/results/study-runs/, the one runs-dir that every committed study table is built from
-#   (a newer copy of a run replaces the older one);
+#   (a newer copy of a run replaces the older one, unless it reached fewer environment steps: a run killed early
+#   on the device never overwrites a longer one filed before; FORCE=1 replaces it anyway);
 # - for each of them whose eval.csv logged the effective rank: <run>/analysis/effective_rank.{csv,png}
 #   (`lnnmpc.analysis.report --ranks-only`);
 # - each study of the batch (its commands.txt) is aggregated again over study-runs/ into
@@ -18,6 +19,13 @@ tarball=${1:?usage: ingest_batch.sh RESULTS_TAR_GZ}
 python=${PYTHON:-.venv/bin/python}
 runs=experiments/results/study-runs
 tmp=$(mktemp -d)
+last_env_step() {  # RUN_DIR: the last env_step its eval.csv logged (0 without evaluations)
+    if [ -f "$1/eval.csv" ]; then
+        awk -F, 'NR > 1 && $1 + 0 > last { last = $1 + 0 } END { print last + 0 }' "$1/eval.csv"
+    else
+        echo 0
+    fi
+}
 trap 'rm -rf "$tmp"' EXIT
 tar -xzf "$tarball" -C "$tmp"
 mkdir -p "$runs"
@@ -25,6 +33,13 @@ if [ -d "$tmp/experiments" ]; then
     for run in "$tmp"/experiments/*/*/*/; do
         rel=${run#"$tmp"/experiments/}
         rel=${rel%/}
+        if [ -d "$runs/$rel" ] && [ "${FORCE:-0}" != 1 ]; then
+            old=$(last_env_step "$runs/$rel") new=$(last_env_step "$run")
+            if [ "$new" -lt "$old" ]; then
+                echo "kept     $runs/$rel (filed at $old env steps; the batch's copy reached only $new: FORCE=1 replaces it)"
+                continue
+            fi
+        fi
         rm -rf "${runs:?}/$rel"
         mkdir -p "$runs/$(dirname "$rel")"
         cp -r "$run" "$runs/$rel"
