@@ -14,12 +14,17 @@ steps, command buffers) or to a few long ones (make those faster). Per program i
   burn-in and window, TD targets, model losses, optimisers, ...), forward and backward apart, from the
   ``op_name`` of the HLO instruction each kernel ran.
 
+``--what burst`` profiles ``--burst`` updates run in one ``lax.scan`` (``TrainingLoop.update_burst``), as the
+training chunk runs them, with every figure per update: a standalone call of the update also pays for its
+dispatch and per-call set-up, which the chunk does not (``train_throughput.py --in-scan``).
+
 On a machine without an accelerator the trace has no device, and the XLA executor threads of the host stand in
 (their ops rather than kernels), which is enough to check the script.
 
     python benchmarks/profile_update.py --task walker-run --agent cfc-zp-det --seeds 3 \\
         --set input_transform=symlog --set lambda_=0 --set rollout_steps=3
     python benchmarks/profile_update.py --small --task cartpole-balance --calls 2 --out /tmp/p.json   # CPU check
+    python benchmarks/profile_update.py ... --what burst --burst 16   # the update as the training chunk runs it
 """
 
 from __future__ import annotations
@@ -185,9 +190,11 @@ def load_trace(directory: str) -> list[dict]:
     return data["traceEvents"] if isinstance(data, dict) else data
 
 
-def profile_call(fn, args: tuple, calls: int, warmup: int = 2, top: int = 25) -> dict:
+def profile_call(fn, args: tuple, calls: int, warmup: int = 2, top: int = 25, per_call: int = 1) -> dict:
     """Warms ``fn(*args)`` up, traces ``calls`` calls (each waited for) and summarizes the trace's kernels, by
-    named scope too where ``fn`` is compiled (``jax.jit(f).lower(...).compile()``: its HLO names the scopes)."""
+    named scope too where ``fn`` is compiled (``jax.jit(f).lower(...).compile()``: its HLO names the scopes).
+    ``per_call``: how many units of work one call does (a burst of updates in one scan); every per-call figure
+    is then per unit."""
     for _ in range(warmup):
         jax.block_until_ready(fn(*args))
     wall = []
@@ -199,20 +206,24 @@ def profile_call(fn, args: tuple, calls: int, warmup: int = 2, top: int = 25) ->
                 wall.append(time.perf_counter() - start)
         events = load_trace(directory)
     op_names = hlo_op_names(fn.as_text()) if hasattr(fn, "as_text") else None  # a compiled program's HLO
-    return summarize_kernels(events, calls, wall, top, op_names=op_names)
+    return summarize_kernels(events, calls * per_call, [w / per_call for w in wall], top, op_names=op_names)
 
 
 def programs(args) -> dict:
-    """The compiled programs to profile, each as (function, arguments): the agent's update and act step,
-    vmapped over seeds (act also over environments), on a replay filled with random steps."""
+    """The compiled programs to profile, each as (function, arguments, units of work per call): the agent's
+    update and act step, vmapped over seeds (act also over environments), and ``--burst`` updates in one scan
+    (``TrainingLoop.update_burst``, as the training chunk runs them), on a replay filled with random steps."""
     loop = build_loop(args.task, args.agent, args.envs, args.small, parse_overrides(args.overrides))
     ts = filled_state(loop, args.seeds, args.fill)
     out = {}
     if "update" in args.what:
-        out["update"] = update_call(loop, ts)
+        out["update"] = (*update_call(loop, ts), 1)
     if "act" in args.what:
         act, act_args = act_call(loop.agent, ts)
-        out["act"] = act.lower(*act_args).compile(), act_args
+        out["act"] = act.lower(*act_args).compile(), act_args, 1
+    if "burst" in args.what:
+        burst = jax.jit(jax.vmap(loop.update_burst, in_axes=(0, None)), static_argnums=1)
+        out["burst"] = burst.lower(ts, args.burst).compile(), (ts,), args.burst
     return out
 
 
@@ -222,7 +233,10 @@ def main(argv=None):
     parser.add_argument("--agent", default="cfc-zp-det")
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--envs", type=int, default=1, help="environments per seed (the act step's batch)")
-    parser.add_argument("--what", default="update,act", help="programs to profile: update, act (comma list)")
+    parser.add_argument("--what", default="update,act",
+                        help="programs to profile: update, act, burst (comma list)")
+    parser.add_argument("--burst", type=int, default=16,
+                        help="updates per call of the burst program (one lax.scan); its figures are per update")
     parser.add_argument("--calls", type=int, default=5, help="calls traced per program")
     parser.add_argument("--fill", type=int, default=600, help="random iterations to fill the replay first")
     parser.add_argument("--top", type=int, default=25, help="kernels listed per program")
@@ -231,15 +245,16 @@ def main(argv=None):
                         help="agent hyperparameter override, repeatable (e.g. --set rollout_steps=3)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
-    unknown = set(args.what.split(",")) - {"update", "act"}
+    unknown = set(args.what.split(",")) - {"update", "act", "burst"}
     if unknown:
-        parser.error(f"unknown --what {sorted(unknown)}: choose from update, act")
-    if args.calls < 1 or args.seeds < 1 or args.envs < 1:
-        parser.error(f"--calls, --seeds and --envs must be >= 1 (got {args.calls}, {args.seeds}, {args.envs})")
+        parser.error(f"unknown --what {sorted(unknown)}: choose from update, act, burst")
+    if min(args.calls, args.seeds, args.envs, args.burst) < 1:
+        parser.error(f"--calls, --seeds, --envs and --burst must be >= 1 "
+                     f"(got {args.calls}, {args.seeds}, {args.envs}, {args.burst})")
     out = args.out or default_out(f"profile-{args.agent}-{args.task}")
     payload = {"benchmark": "profile_update", "env": environment_info(), "args": vars(args), "results": {}}
-    for name, (fn, fn_args) in programs(args).items():
-        summary = profile_call(fn, fn_args, args.calls, top=args.top)
+    for name, (fn, fn_args, per_call) in programs(args).items():
+        summary = profile_call(fn, fn_args, args.calls, top=args.top, per_call=per_call)
         payload["results"][name] = summary
         write_json(out, payload)
         print(f"{name:6s} {summary['wall_ms_per_call']:8.2f} ms wall  {summary['busy_ms_per_call']:8.2f} ms busy "

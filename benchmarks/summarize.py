@@ -23,6 +23,13 @@ def _ms(value: float | None) -> str:
     return "—" if value is None else f"{value:.2f}"
 
 
+def _with_in_scan(record: dict, part: str) -> str:
+    """``record[part_ms]``, followed by ``(in-scan ms)`` where the record timed the part inside a scan."""
+    value = _ms(record.get(f"{part}_ms"))
+    in_scan = record.get(f"{part}_in_scan_ms")
+    return value if in_scan is None else f"{value} ({in_scan:.2f})"
+
+
 def _setting(payload: dict, task: str, agent: str) -> str:
     """What a training benchmark of ``agent`` on ``task`` changed from the defaults: matmul precision, ``--set``
     overrides that differ from the agent's task defaults (the walker defaults of the LNN agents), XLA flags; ""
@@ -107,8 +114,8 @@ def main() -> None:
                 chunk = (f"{r['ms_per_iteration']:.2f} | {r['chunk_env_steps_per_s']:,.0f}" if "ms_per_iteration" in r
                          else "— | —")
                 train_rows.append(
-                    f"| {r['task']} | {r['agent']}{suffix} | {r['seeds']} | {r['envs']} | {_ms(r.get('act_ms'))} | "
-                    f"{_ms(r.get('env_ms'))} | {r['update_ms']:.2f} | {chunk} | {device} | {name} |")
+                    f"| {r['task']} | {r['agent']}{suffix} | {r['seeds']} | {r['envs']} | {_with_in_scan(r, 'act')} | "
+                    f"{_with_in_scan(r, 'env')} | {_with_in_scan(r, 'update')} | {chunk} | {device} | {name} |")
         elif payload.get("benchmark") == "profile_update":
             args = payload.get("args", {})
             for program, r in payload["results"].items():
@@ -137,6 +144,8 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|")
     print("\n".join(cell_rows))
     print("\n## Training steps (benchmarks/train_throughput.py): act, env step, one update, end-to-end chunk\n")
+    print("A standalone call's time; in parentheses, where measured (`--in-scan N`), the time per call when N of them "
+          "run inside one `lax.scan`, as the training chunk runs them.\n")
     print("| task | agent | seeds | envs | act ms | env ms | update ms | chunk ms / iteration | chunk env steps / s "
           "| device | file |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")

@@ -7,12 +7,19 @@ For each task and number of seeds (vmap), times with compile excluded (medians o
   arithmetic by XLA's cost analysis and ``update_tflop_per_s`` the rate achieved; ``update_compile_s`` the
   seconds to lower and compile it (``--update-only`` stops here);
 * ``chunk_env_steps_per_s``: a training chunk of ``--chunk`` iterations (act -> env step -> insert -> update),
-  environment steps per second summed over seeds.
+  environment steps per second summed over seeds;
+* with ``--in-scan N``: ``update_in_scan_ms`` (and, unless ``--update-only``, ``act_in_scan_ms`` and
+  ``env_in_scan_ms``): the cost of one call when N of them run inside one ``lax.scan``, as the training chunk
+  runs them (the update: ``TrainingLoop.update_burst``). A standalone call also pays for its dispatch and
+  per-call set-up: on an H100 the standalone act, env step and update times of TD-MPC2 summed to 1.4-1.9x the
+  chunk's time per iteration (``benchmarks/results/README.md``), so ``parts_in_scan_ms`` is the breakdown of an
+  iteration to compare with it.
 Writes JSON (device, versions, config, results), rewritten after each measurement.
 
     python benchmarks/train_throughput.py --tasks walker-run,cartpole-swingup --seeds 1,4,8
     python benchmarks/train_throughput.py --small --tasks cartpole-balance --seeds 1,2 --chunk 20   # CPU check
     python benchmarks/train_throughput.py --tasks walker-run --seeds 4 --skip-chunk --matmul-precision bfloat16
+    python benchmarks/train_throughput.py --tasks walker-run --agent cfc-zp-det --seeds 3 --envs 16 --in-scan 16
 """
 
 from __future__ import annotations
@@ -64,6 +71,38 @@ def update_call(loop: TrainingLoop, ts):
     return jax.jit(jax.vmap(loop._update)).lower(ts, keys).compile(), (ts, keys)
 
 
+def in_scan_calls(loop: TrainingLoop, ts, n: int) -> dict:
+    """Programs that run ``n`` act steps, environment steps or updates (every seed) inside one ``lax.scan``, as
+    the training chunk runs them, with their arguments: {"act" | "env" | "update": (jitted fn, args)}. The act
+    steps chain the planner's carry from the same observations; the environment steps apply zero actions."""
+    one = lambda s, carry, obs, dt, k: loop.agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
+    act = jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0)))
+    step = jax.vmap(jax.vmap(loop.env.step))
+
+    def acts(agent, carry, obs, dt, keys):  # keys (n, seeds, envs)
+        def body(carry, k):
+            action, carry = act(agent, carry, obs, dt, k)
+            return carry, action
+        return jax.lax.scan(body, carry, keys)
+
+    def env_steps(env, actions):
+        return jax.lax.scan(lambda env, _: (step(env, actions), None), env, None, length=n)[0]
+
+    keys = jax.random.split(jax.random.key(3), (n, *ts.episode_return.shape))
+    actions = jnp.zeros((*ts.episode_return.shape, loop.env.action_size))
+    burst = jax.jit(jax.vmap(loop.update_burst, in_axes=(0, None)), static_argnums=1)
+    return {"act": (jax.jit(acts), (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)),
+            "env": (jax.jit(env_steps), (ts.env, actions)),
+            "update": (lambda ts: burst(ts, n), (ts,))}
+
+
+def time_in_scan(loop: TrainingLoop, ts, n: int, parts: tuple[str, ...], repeats: int) -> dict:
+    """``{part}_in_scan_ms``: milliseconds per call of each of ``parts`` run ``n`` at a time in one scan."""
+    calls = in_scan_calls(loop, ts, n)
+    return {f"{part}_in_scan_ms": 1e3 * time_call(calls[part][0], *calls[part][1], repeats=repeats)["median_s"] / n
+            for part in parts}
+
+
 def measure(task: str, seeds: int, envs: int, args) -> dict:
     loop = build_loop(task, args.agent, envs, args.small, parse_overrides(args.overrides))
     ts = filled_state(loop, seeds, args.fill)
@@ -78,6 +117,13 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     record["update_gflop"] = compiled_gflop(update)
     if record["update_gflop"] is not None:
         record["update_tflop_per_s"] = record["update_gflop"] / record["update_ms"]
+    if args.in_scan:
+        parts = ("update",) if args.update_only else ("act", "env", "update")
+        record["in_scan"] = args.in_scan
+        record.update(time_in_scan(loop, ts, args.in_scan, parts, max(1, args.repeats // 3)))
+        if not args.update_only:
+            record["parts_in_scan_ms"] = {"act": record["act_in_scan_ms"], "env": record["env_in_scan_ms"],
+                                          "updates": envs * record["update_in_scan_ms"]}
     if args.update_only:
         return record
     act, act_args = act_call(loop.agent, ts)
@@ -121,6 +167,8 @@ def main(argv=None):
                         help="time act, env step and update only (no end-to-end chunk: saves its compilation)")
     parser.add_argument("--update-only", action="store_true",
                         help="time the update alone (no act step, env step or chunk)")
+    parser.add_argument("--in-scan", type=int, default=0, metavar="N",
+                        help="also time act, env step and update N at a time inside one lax.scan (0: off)")
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
     parser.add_argument("--matmul-precision", choices=("default", "tensorfloat32", "bfloat16", "highest"),
                         default="default", help="jax_default_matmul_precision for every program timed")
@@ -128,6 +176,8 @@ def main(argv=None):
                         help="agent hyperparameter override, repeatable (e.g. --set flat_optimizer=true)")
     parser.add_argument("--out", default=None)
     args = parser.parse_args(argv)
+    if args.in_scan < 0:
+        parser.error(f"--in-scan must be >= 0 (0: off), got {args.in_scan}")
     if args.matmul_precision != "default":
         jax.config.update("jax_default_matmul_precision", args.matmul_precision)
     out = args.out or default_out("train_throughput")
@@ -138,14 +188,19 @@ def main(argv=None):
             payload["results"].append(record)
             write_json(out, payload)
             if args.update_only:
+                in_scan = (f", {record['update_in_scan_ms']:.2f} ms in a scan of {args.in_scan}"
+                           if args.in_scan else "")
                 print(f"{task:18s} {args.agent:12s} seeds={seeds:2d}  update {record['update_ms']:8.2f} ms"
-                      f" (compiled in {record['update_compile_s']:.1f} s)", flush=True)
+                      f" (compiled in {record['update_compile_s']:.1f} s){in_scan}", flush=True)
                 continue
             chunk = ("" if args.skip_chunk else f"  chunk {record['ms_per_iteration']:8.2f} ms/iteration"
                      f"  {record['chunk_env_steps_per_s']:10.0f} env steps/s")
             print(f"{task:18s} {args.agent:12s} seeds={seeds:2d} envs={envs:2d}  env {record['env_ms']:6.2f} ms"
                   f"  act {record['act_ms']:8.2f} ms  update {record['update_ms']:8.2f} ms"
                   f" ({record.get('update_tflop_per_s') or 0:.1f} TFLOP/s){chunk}", flush=True)
+            if args.in_scan:
+                print(f"{'':18s} in a scan of {args.in_scan}: env {record['env_in_scan_ms']:6.2f} ms  act "
+                      f"{record['act_in_scan_ms']:8.2f} ms  update {record['update_in_scan_ms']:8.2f} ms", flush=True)
     print(f"wrote {out}")
 
 

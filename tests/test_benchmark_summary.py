@@ -50,3 +50,10 @@ def test_update_only_and_profile_records_are_tabulated(tmp_path, monkeypatch, ca
             "a-update-only.json |") in out
     assert ("| walker-run | cfc-zp-det | 3 | update | 14.21 | 10.33 | 0.73 | 1383 | matmul 239 / 3.50 ms | GPU X | "
             "b-profile.json |") in out
+
+
+def test_in_scan_times_follow_the_standalone_ones():
+    record = {"act_ms": 2.5, "env_ms": 1.21, "update_ms": 84.26, "update_in_scan_ms": 42.0}
+    assert summarize._with_in_scan(record, "update") == "84.26 (42.00)"
+    assert summarize._with_in_scan(record, "env") == "1.21"
+    assert summarize._with_in_scan({"update_ms": 12.0}, "act") == "—"

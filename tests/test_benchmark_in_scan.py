@@ -1,0 +1,54 @@
+"""The benchmarks' in-scan programs (``train_throughput.py --in-scan``, ``profile_update.py --what burst``) do
+the same work as the calls they stand for, chained."""
+
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import profile_update as pu  # noqa: E402
+from train_throughput import build_loop, in_scan_calls  # noqa: E402
+
+
+def assert_trees_close(a, b):
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
+            x, y = jax.random.key_data(x), jax.random.key_data(y)
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+
+
+def test_in_scan_act_and_env_steps_equal_the_chained_calls():
+    loop = build_loop("cartpole-balance", "tdmpc2", 2, True, {})
+    ts = jax.jit(jax.vmap(loop.init))(jax.random.split(jax.random.key(0), 1))  # no replay needed here
+    n = 3
+    calls = in_scan_calls(loop, ts, n)
+    act_fn, (agent, carry, obs, dt, keys) = calls["act"]
+    final_carry, actions = act_fn(agent, carry, obs, dt, keys)
+    assert actions.shape == (n, 1, 2, loop.env.action_size)
+    one = jax.jit(jax.vmap(jax.vmap(
+        lambda s, c, o, d, k: loop.agent.act(s, c, o, d, k, explore=True, first_step=jnp.array(False)),
+        in_axes=(None, 0, 0, 0, 0))))
+    for i in range(n):
+        action, carry = one(agent, carry, obs, dt, keys[i])
+        np.testing.assert_allclose(np.asarray(action), np.asarray(actions[i]), rtol=1e-5, atol=1e-6)
+    assert_trees_close(final_carry, carry)
+
+    env_fn, (env, zeros) = calls["env"]
+    step = jax.jit(jax.vmap(jax.vmap(loop.env.step)))
+    by_hand = env
+    for _ in range(n):
+        by_hand = step(by_hand, zeros)
+    assert_trees_close(env_fn(env, zeros), by_hand)
+    assert int(np.asarray(by_hand.t).max()) > int(np.asarray(env.t).max())  # the steps did advance
+    # calls["update"] is TrainingLoop.update_burst itself (tests/test_loop*.py), so it is not re-run here.
+
+
+def test_profile_call_reports_figures_per_unit_of_a_burst():
+    fn = jax.jit(lambda x: jax.lax.scan(lambda c, _: (jnp.tanh(c @ c), None), x, None, length=4)[0])
+    summary = pu.profile_call(fn, (jnp.ones((16, 16)),), calls=2, warmup=1, top=3, per_call=4)
+    assert summary["calls"] == 8
+    assert summary["kernels_per_call"] > 0 and summary["wall_ms_per_call"] > 0
