@@ -285,4 +285,10 @@ class WandbLogger:
             self.run.log({"env_step": rows[0]["env_step"], **eval_scalars(rows)})
 
     def close(self) -> None:
+        """Finishes the W&B run and waits for W&B's service to write everything out: ``finish`` alone has
+        returned with the offline ``.wandb`` file still holding only its header (wandb 0.31, a loaded machine).
+        ``wandb.teardown`` ends every W&B run of this process, so close the logger last."""
+        import wandb
+
         self.run.finish()
+        wandb.teardown()
