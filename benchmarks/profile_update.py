@@ -44,7 +44,7 @@ import jax
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
 from common import default_out, environment_info, write_json  # noqa: E402
-from train_throughput import act_call, build_loop, filled_state, update_call  # noqa: E402
+from train_throughput import act_call, build_loop, filled_state, update_burst_program, update_call  # noqa: E402
 
 from lnnmpc.train.config import parse_overrides  # noqa: E402
 
@@ -222,8 +222,7 @@ def programs(args) -> dict:
         act, act_args = act_call(loop.agent, ts)
         out["act"] = act.lower(*act_args).compile(), act_args, 1
     if "burst" in args.what:
-        burst = jax.jit(jax.vmap(loop.update_burst, in_axes=(0, None)), static_argnums=1)
-        out["burst"] = burst.lower(ts, args.burst).compile(), (ts,), args.burst
+        out["burst"] = update_burst_program(loop).lower(ts, args.burst).compile(), (ts,), args.burst
     return out
 
 

@@ -57,12 +57,28 @@ def filled_state(loop: TrainingLoop, seeds: int, fill: int):
     return seed_chunk(ts, fill)[0]
 
 
+def act_over_seeds_and_envs(agent):
+    """The act step with exploration, vmapped over seeds x environments (not jitted):
+    (agent state, carry, obs, dt, keys) -> (action, next carry)."""
+    one = lambda s, carry, obs, dt, k: agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
+    return jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0)))
+
+
+def env_step_over_seeds_and_envs(loop: TrainingLoop):
+    """The environment step vmapped over seeds x environments (not jitted): (env states, actions) -> states."""
+    return jax.vmap(jax.vmap(loop.env.step))
+
+
+def update_burst_program(loop: TrainingLoop):
+    """``TrainingLoop.update_burst`` vmapped over seeds and jitted: (ts, number of updates, static) -> (ts,
+    metrics); the updates run in one ``lax.scan``, as the training chunk runs them."""
+    return jax.jit(jax.vmap(loop.update_burst, in_axes=(0, None)), static_argnums=1)
+
+
 def act_call(agent, ts):
     """The jitted act step with exploration over seeds x environments, and its arguments from ``ts``."""
-    one = lambda s, carry, obs, dt, k: agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
     keys = jax.random.split(jax.random.key(1), ts.episode_return.shape)  # (seeds, envs)
-    act = jax.jit(jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0))))
-    return act, (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)
+    return jax.jit(act_over_seeds_and_envs(agent)), (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)
 
 
 def update_call(loop: TrainingLoop, ts):
@@ -75,9 +91,7 @@ def in_scan_calls(loop: TrainingLoop, ts, n: int) -> dict:
     """Programs that run ``n`` act steps, environment steps or updates (every seed) inside one ``lax.scan``, as
     the training chunk runs them, with their arguments: {"act" | "env" | "update": (jitted fn, args)}. The act
     steps chain the planner's carry from the same observations; the environment steps apply zero actions."""
-    one = lambda s, carry, obs, dt, k: loop.agent.act(s, carry, obs, dt, k, explore=True, first_step=jnp.array(False))
-    act = jax.vmap(jax.vmap(one, in_axes=(None, 0, 0, 0, 0)))
-    step = jax.vmap(jax.vmap(loop.env.step))
+    act, step = act_over_seeds_and_envs(loop.agent), env_step_over_seeds_and_envs(loop)
 
     def acts(agent, carry, obs, dt, keys):  # keys (n, seeds, envs)
         def body(carry, k):
@@ -90,7 +104,7 @@ def in_scan_calls(loop: TrainingLoop, ts, n: int) -> dict:
 
     keys = jax.random.split(jax.random.key(3), (n, *ts.episode_return.shape))
     actions = jnp.zeros((*ts.episode_return.shape, loop.env.action_size))
-    burst = jax.jit(jax.vmap(loop.update_burst, in_axes=(0, None)), static_argnums=1)
+    burst = update_burst_program(loop)
     return {"act": (jax.jit(acts), (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)),
             "env": (jax.jit(env_steps), (ts.env, actions)),
             "update": (lambda ts: burst(ts, n), (ts,))}
@@ -134,7 +148,7 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
             loop.agent.config, planner=dataclasses.replace(loop.agent.config.planner, unroll=False)))
         act_rolled = act_call(rolled, ts)[0]
         record["act_rolled_ms"] = 1e3 * time_call(act_rolled, *act_args, repeats=args.repeats)["median_s"]
-    env_step = jax.jit(jax.vmap(jax.vmap(loop.env.step)))
+    env_step = jax.jit(env_step_over_seeds_and_envs(loop))
     actions = jnp.zeros((seeds, envs, act_dim))
     record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
     if args.skip_chunk:

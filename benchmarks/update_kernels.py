@@ -24,9 +24,9 @@ from lnnmpc import envs
 from lnnmpc.agents.registry import make_agent
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from common import environment_info, write_json  # noqa: E402
+from common import compiled_gflop, environment_info, write_json  # noqa: E402
 from profile_update import scope_label  # noqa: E402
-from train_throughput import build_loop  # noqa: E402
+from train_throughput import build_loop, update_call  # noqa: E402
 
 from lnnmpc.agents.registry import task_default_overrides  # noqa: E402
 from lnnmpc.train.config import parse_overrides  # noqa: E402
@@ -71,11 +71,9 @@ def launched_ops(hlo_text: str) -> dict:
 def loop_update_ops(task: str, agent: str, seeds: int, overrides: dict) -> dict:
     """:func:`launched_ops` of the trainer's update of ``seeds`` seeds (vmap), with XLA's GFLOP count."""
     loop = build_loop(task, agent, 1, False, task_default_overrides(agent, task, overrides))
-    keys = jax.random.split(jax.random.key(0), seeds)
-    compiled = jax.jit(jax.vmap(loop._update)).lower(jax.eval_shape(jax.vmap(loop.init), keys), keys).compile()
-    cost = compiled.cost_analysis()
-    cost = cost[0] if isinstance(cost, (list, tuple)) else cost
-    return {**launched_ops(compiled.as_text()), "gflop": (cost or {}).get("flops", 0.0) / 1e9}
+    shapes = jax.eval_shape(jax.vmap(loop.init), jax.random.split(jax.random.key(0), seeds))  # shapes suffice
+    compiled = update_call(loop, shapes)[0]
+    return {**launched_ops(compiled.as_text()), "gflop": compiled_gflop(compiled)}
 
 
 def main() -> None:

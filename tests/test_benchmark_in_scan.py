@@ -11,7 +11,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "benchmarks"))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import profile_update as pu  # noqa: E402
-from train_throughput import build_loop, in_scan_calls  # noqa: E402
+from train_throughput import act_call, build_loop, env_step_over_seeds_and_envs, in_scan_calls  # noqa: E402
 
 
 def assert_trees_close(a, b):
@@ -29,16 +29,14 @@ def test_in_scan_act_and_env_steps_equal_the_chained_calls():
     act_fn, (agent, carry, obs, dt, keys) = calls["act"]
     final_carry, actions = act_fn(agent, carry, obs, dt, keys)
     assert actions.shape == (n, 1, 2, loop.env.action_size)
-    one = jax.jit(jax.vmap(jax.vmap(
-        lambda s, c, o, d, k: loop.agent.act(s, c, o, d, k, explore=True, first_step=jnp.array(False)),
-        in_axes=(None, 0, 0, 0, 0))))
+    one = act_call(loop.agent, ts)[0]  # the standalone act call the scan stands for
     for i in range(n):
         action, carry = one(agent, carry, obs, dt, keys[i])
         np.testing.assert_allclose(np.asarray(action), np.asarray(actions[i]), rtol=1e-5, atol=1e-6)
     assert_trees_close(final_carry, carry)
 
     env_fn, (env, zeros) = calls["env"]
-    step = jax.jit(jax.vmap(jax.vmap(loop.env.step)))
+    step = jax.jit(env_step_over_seeds_and_envs(loop))
     by_hand = env
     for _ in range(n):
         by_hand = step(by_hand, zeros)
