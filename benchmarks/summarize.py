@@ -50,6 +50,17 @@ def _setting(payload: dict, task: str, agent: str) -> str:
     return f" ({'; '.join(parts)})" if parts else ""
 
 
+def _top_scopes(record: dict, count: int = 4) -> str:
+    """The `count` named scopes of a profiled program with the most kernel time ("model_losses backward 3.99 ms,
+    ..."), or "—" for a record profiled before scopes were recorded."""
+    scopes = record.get("by_scope")
+    if not scopes:
+        return "—"
+    items = scopes.items() if isinstance(scopes, dict) else scopes
+    ranked = sorted(items, key=lambda item: -item[1]["ms_per_call"])[:count]
+    return ", ".join(f"{name} {entry['ms_per_call']:.2f} ms" for name, entry in ranked)
+
+
 def plot_env_throughput(path: str) -> None:
     """ms per agent step versus batch, one line per (domain, solver setting), log-log."""
     import matplotlib
@@ -125,7 +136,8 @@ def main() -> None:
                 profile_rows.append(
                     f"| {args['task']} | {args['agent']}{setting} | {args.get('seeds')} | {program} | "
                     f"{r['wall_ms_per_call']:.2f} | {r['busy_ms_per_call']:.2f} | {r['busy_fraction']:.2f} | "
-                    f"{r['kernels_per_call']:.0f} | {categories} | {payload['env']['device']} | {name} |")
+                    f"{r['kernels_per_call']:.0f} | {categories} | {_top_scopes(r)} | {payload['env']['device']} | "
+                    f"{name} |")
         elif "results" in payload and payload["results"] and "forward_backward_ms_median" in payload["results"][0]:
             for r in payload["results"]:
                 peak = r.get("peak_bytes_in_use")
@@ -152,8 +164,8 @@ def main() -> None:
     print("\n".join(train_rows))
     print("\n## Where an update's time goes (benchmarks/profile_update.py): kernels of a traced call\n")
     print("| task | agent | seeds | program | wall ms | busy ms | busy fraction | kernels / call | by category "
-          "(kernels / ms per call) | device | file |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "(kernels / ms per call) | largest named scopes (kernel ms per call) | device | file |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     print("\n".join(profile_rows))
     with contextlib.redirect_stdout(sys.stderr):  # what importing matplotlib's plugins prints stays out of the table
         plot_env_throughput(os.path.join(RESULTS, "env_throughput.png"))

@@ -39,7 +39,11 @@ def test_update_only_and_profile_records_are_tabulated(tmp_path, monkeypatch, ca
     category = {"kernels_per_call": 239.0, "ms_per_call": 3.5}
     profile = payload(WALKER_DEFAULTS, benchmark="profile_update", results={"update": {
         "wall_ms_per_call": 14.21, "busy_ms_per_call": 10.33, "busy_fraction": 0.727, "kernels_per_call": 1383.0,
-        "by_category": {"matmul": category, "other": {"kernels_per_call": 0.2, "ms_per_call": 0.001}}}})
+        "by_category": {"matmul": category, "other": {"kernels_per_call": 0.2, "ms_per_call": 0.001}}},
+        "burst": {"wall_ms_per_call": 11.11, "busy_ms_per_call": 10.4, "busy_fraction": 0.94,
+                  "kernels_per_call": 1107.0, "by_category": {"matmul": category},
+                  "by_scope": [["td_targets forward", {"kernels_per_call": 26.0, "ms_per_call": 0.41}],
+                               ["model_losses backward", {"kernels_per_call": 130.0, "ms_per_call": 3.99}]]}})
     for name, data in (("a-update-only.json", update_only), ("b-profile.json", profile)):
         (tmp_path / name).write_text(json.dumps(data))
     monkeypatch.setattr(summarize, "RESULTS", str(tmp_path))
@@ -48,8 +52,11 @@ def test_update_only_and_profile_records_are_tabulated(tmp_path, monkeypatch, ca
     out = capsys.readouterr().out
     assert ("| walker-run | cfc-zp-det (scan_unroll=43) | 3 | 1 | — | — | 12.87 | — | — | GPU X | "
             "a-update-only.json |") in out
-    assert ("| walker-run | cfc-zp-det | 3 | update | 14.21 | 10.33 | 0.73 | 1383 | matmul 239 / 3.50 ms | GPU X | "
+    assert ("| walker-run | cfc-zp-det | 3 | update | 14.21 | 10.33 | 0.73 | 1383 | matmul 239 / 3.50 ms | — | GPU X | "
             "b-profile.json |") in out
+    # the named scopes, the largest first
+    assert ("| burst | 11.11 | 10.40 | 0.94 | 1107 | matmul 239 / 3.50 ms | model_losses backward 3.99 ms, "
+            "td_targets forward 0.41 ms | GPU X |") in out
 
 
 def test_in_scan_times_follow_the_standalone_ones():
