@@ -276,6 +276,47 @@ def test_three_depths_are_split_back_at_their_own_positions(name):
                                rtol=1e-5)
 
 
+@pytest.mark.parametrize("name", ["cfc-zp-det", "cfc-op-det"])
+def test_rollout_stride_starts_the_deeper_depths_every_few_positions(name):
+    """``rollout_stride`` S = 2 with K = 3 and H = 4: depth 1 starts at positions 0 and 2 (so sits at 1 and 3),
+    depth 2 at position 0 only (sits at 2); depth 0 keeps all four positions. Built by hand from the model's
+    pieces; with rho != 1 the depth-1 positions are weighted 1 and rho^2."""
+    agent = tiny(name, rollout_steps=3, rollout_stride=2, rho=0.5)
+    plain = tiny(name, rollout_steps=3, rho=0.5)
+    state = quick_jit(agent.init)(jax.random.key(21))
+    batch, key, T, H = window(agent, seed=22), jax.random.key(23), agent.config.burn_in, agent.config.horizon
+    assert H == 4
+    _, (_, metrics) = quick_jit(agent.world_model_loss)(state.params, state.target_q, batch, key)
+    _, (_, every) = quick_jit(plain.world_model_loss)(state.params, state.target_q, batch, key)
+
+    def by_hand(params):
+        apply = lambda *args, **kw: agent.model.apply({"params": params}, *args, **kw)
+        zs, action = agent.latents(params, batch), batch["action"][T:T + H]
+        target = zs[1:] if agent.config.model.objective == "zp" else batch["obs"][T + 1:]
+        error = lambda z, t: jnp.mean((apply(z, action[t], method="predict")[0] - target[t]) ** 2, axis=(-2, -1))
+        depth0 = jnp.sum(0.5 ** jnp.arange(4.0) * error(zs[:4], jnp.arange(4))) / 4
+        z1 = apply(zs[jnp.array([0, 2])], action[jnp.array([0, 2])], method="transition")  # at positions 1, 3
+        depth1 = jnp.sum(jnp.array([1.0, 0.25]) * error(z1, jnp.array([1, 3]))) / 2
+        z2 = apply(z1[:1], action[1:2], method="transition")  # at position 2
+        depth2 = error(z2, jnp.array([2]))[0]
+        return depth0, depth1, depth2
+
+    depth0, depth1, depth2 = (float(x) for x in quick_jit(by_hand)(state.params))
+    np.testing.assert_allclose(float(metrics["rollout_prediction_loss"]), depth2, rtol=1e-5)
+    np.testing.assert_allclose(float(metrics["prediction_loss"]), (depth0 + depth1 + depth2) / 3, rtol=1e-5)
+    # with S = 1 depth 2 also starts at position 1 (sits at 3), so its loss is another one
+    assert abs(float(every["rollout_prediction_loss"]) - depth2) > 1e-4
+
+
+def test_rollout_stride_is_validated_and_inactive_without_rollouts():
+    with pytest.raises(ValueError, match="rollout_stride=0 is invalid; expected an integer >= 1"):
+        tiny("cfc-zp-det", rollout_stride=0)
+    with pytest.raises(ValueError, match=r"rollout_stride \(5\) must be <= horizon \(4\)"):
+        tiny("cfc-zp-det", rollout_stride=5)
+    assert "rollout_stride" in tiny("cfc-zp-det").config.inactive_fields()
+    assert "rollout_stride" not in tiny("cfc-zp-det", rollout_steps=2).config.inactive_fields()
+
+
 def test_rollout_steps_are_validated():
     with pytest.raises(ValueError, match="rollout_steps=0 is invalid; expected an integer >= 1"):
         tiny("cfc-zp-det", rollout_steps=0)

@@ -32,6 +32,11 @@ state h_{t−1} the actor held before reading o_t, and a_{t−1} (zeros at an ep
   K = 1 bit for bit the unstacked loss; with K > 1 one Q-dropout mask over the stack instead of one per depth).
   With K = 1 the planner scores action sequences with heads that never saw a predicted latent, and its
   H_plan = 10 steps go that far off the encoder's latents.
+* ``rollout_stride`` S (speed; default 1): the depths k >= 1 start only from every S-th position of the window
+  (0, S, 2S, ...), so depth k has ceil((H − k) / S) positions instead of H − k; depth 0 keeps all H. The heads
+  and losses over the stacked depths are most of an update's time (62% for walker with K = 3 on an H100:
+  benchmarks/results/README.md, run 15), and K = 3 stacks 93 positions at S = 1, 53 at S = 3. Each depth's loss
+  is still the mean over its positions, weighted ρ^(t − k) by its positions t (ρ = 1 by default).
 
 Acting (:meth:`LNNTDMPC2.act`): the encoder reads [o_t, a_{t−1}] with Δt_t, then MPPI plans from h_t. The
 planner's transition (Algorithm 4 / 5) samples the stochastic predictor: ZP rolls ẑ_{t+1} ~ f(z_t, a_t); OP
@@ -85,6 +90,7 @@ class LNNConfig(TDMPC2Config):
     free_bits: float = -2.0  # floor of the OP-stoch per-step NLL, nats per dimension
     nll_beta: float = 1.0  # β-NLL weight stop_gradient(σ^(2β)) of the stochastic variants' NLL; 0 = plain NLL
     rollout_steps: int = 1  # K: depths of open-loop model losses (module docstring); 1 = the thesis
+    rollout_stride: int = 1  # S: depths >= 1 start from every S-th window position only (module docstring)
     # Encoder time steps per lax.scan iteration in the update (speed only; >= T + H + 1 leaves no loop). No faster
     # on an H100 for walker (12.65 ms rolled, 12.87 fully unrolled: benchmarks/results/README.md, run 13).
     scan_unroll: int = 1
@@ -93,6 +99,10 @@ class LNNConfig(TDMPC2Config):
         super().__post_init__()
         check_int_at_least("burn_in", self.burn_in, 0)
         check_int_at_least("rollout_steps", self.rollout_steps, 1)
+        check_int_at_least("rollout_stride", self.rollout_stride, 1)
+        if self.rollout_stride > self.horizon:
+            raise ValueError(f"rollout_stride ({self.rollout_stride}) must be <= horizon ({self.horizon}): the "
+                             "rollouts start every rollout_stride positions of the window")
         check_int_at_least("scan_unroll", self.scan_unroll, 1)
         if self.rollout_steps > self.horizon:
             raise ValueError(f"rollout_steps ({self.rollout_steps}) must be <= horizon ({self.horizon}): depth k "
@@ -110,6 +120,8 @@ class LNNConfig(TDMPC2Config):
             unused |= {"free_bits", "nll_beta", "model.min_sigma", "model.max_sigma"}
         elif self.model.objective == "zp":
             unused.add("free_bits")
+        if self.rollout_steps == 1:
+            unused.add("rollout_stride")
         return unused
 
 
@@ -200,20 +212,24 @@ class LNNTDMPC2(TDMPC2):
                                                              cfg.lambda_))
         target = next_z if cfg.model.objective == "zp" else batch["obs"][T + 1:]
 
-        # Every depth's latents (depth k: positions k..H-1) and inputs stacked on the time axis, so the heads and
-        # losses run once for all K depths (one set of kernels, not K), then are split back per depth.
-        K, z, by_depth = cfg.rollout_steps, zs[:-1], [zs[:-1]]
+        # Every depth's latents (depth k >= 1: positions k + s for the rollout starts s = 0, S, 2S, ... <= H-1-k;
+        # depth 0: all H positions) and inputs stacked on the time axis, so the heads and losses run once for all
+        # K depths (one set of kernels, not K), then are split back per depth.
+        K, S = cfg.rollout_steps, cfg.rollout_stride
+        counts = [H] + [len(range(0, H - k, S)) for k in range(1, K)]  # positions of each depth
+        z, by_depth = zs[:-1][::S], [zs[:-1]]
         for k in range(1, K):
             with jax.named_scope("model_losses"):
-                z = self._apply(params, z[:-1], action[k - 1:-1], method="transition")
+                z = self._apply(params, z[:counts[k]], action[k - 1::S][:counts[k]], method="transition")
             by_depth.append(z)
-        stack = lambda x: jnp.concatenate([x[k:] for k in range(K)])
+        stack = lambda x: jnp.concatenate([x] + [x[k::S][:counts[k]] for k in range(1, K)])
         with jax.named_scope("model_losses"):
             per_step = self._step_losses(params, jnp.concatenate(by_depth), stack(action), stack(reward),
                                          stack(td_target), stack(target), k_drop)
             positions = lambda a, b: jax.tree_util.tree_map(lambda x: x[..., a:b], per_step)  # time axis last
-            starts = [sum(H - j for j in range(k)) for k in range(K + 1)]  # depth k: H - k positions
-            depths = [self._depth_average(positions(a, b)) for a, b in zip(starts[:-1], starts[1:], strict=True)]
+            ends = [sum(counts[:k]) for k in range(K + 1)]
+            depths = [self._depth_average(positions(a, b), 1 if k == 0 else S)
+                      for k, (a, b) in enumerate(zip(ends[:-1], ends[1:], strict=True))]
         losses = {name: sum(d[0][name] for d in depths) / len(depths) for name in depths[0][0]}
         total = (cfg.consistency_coef * losses["prediction_loss"] + cfg.reward_coef * losses["reward_loss"]
                  + cfg.value_coef * losses["value_loss"])
@@ -234,11 +250,12 @@ class LNNTDMPC2(TDMPC2):
         value_ce = M.soft_cross_entropy(q_logits, td_target[None], num_bins, cfg.vmin, cfg.vmax).mean(axis=2)
         return {"prediction": prediction, "reward": reward_ce, "value": value_ce, "info": info}
 
-    def _depth_average(self, per_step: dict) -> tuple[dict, dict]:
-        """One depth's losses from its :meth:`_step_losses` (n positions): each ρ^t-weighted and averaged over
-        the n positions; returns (losses, the prediction's diagnostics averaged the same way)."""
+    def _depth_average(self, per_step: dict, spacing: int = 1) -> tuple[dict, dict]:
+        """One depth's losses from its :meth:`_step_losses` (n positions, ``spacing`` steps apart): each
+        ρ^(spacing·j)-weighted and averaged over the n positions; returns (losses, the prediction's diagnostics
+        averaged the same way)."""
         cfg, n = self.config, per_step["prediction"].shape[0]
-        weights = M.discounted_weights(n, cfg.rho)
+        weights = M.discounted_weights(n, cfg.rho ** spacing)
         average = lambda x: jnp.sum(weights * x) / n
         losses = {"prediction_loss": average(per_step["prediction"]), "reward_loss": average(per_step["reward"]),
                   # one division, as before rollout_steps existed: K = 1 stays bit-for-bit the old loss

@@ -45,7 +45,7 @@ def agent_config_json(agent_config) -> dict:
 # saved agent configuration lacks the field resumes when the field has that value now.
 ADDED_AGENT_FIELDS = {"nll_beta": 0.0, "model.input_transform": "none", "joint_grad_clip": False,
                       "model.simnorm_layer_norm": False, "flat_optimizer": False, "rollout_steps": 1,
-                      "scan_unroll": 1}
+                      "scan_unroll": 1, "rollout_stride": 1}
 
 
 def check_agent_config(run: str, agent_config) -> None:
