@@ -255,6 +255,55 @@ def test_device_batch_start_places_pinned_and_round_robin_jobs(tmp_path):
     assert len((batch / "commands.txt").read_text().splitlines()) == 4  # nothing launched
 
 
+def test_device_batch_after_runs_a_command_once_its_job_has_ended(tmp_path):
+    """``device_batch.sh after NAME GPU CMD``: each job records its exit status (NAME.rc) when it ends; the command
+    waits for that in the background, then runs on the given GPU; an unknown job or a GPU that is no number is
+    refused at once, naming the batch's jobs."""
+    import subprocess
+    import time
+
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "nvidia-smi").write_text('#!/bin/sh\n[ "$1" = -L ] && printf "GPU 0: fake\\nGPU 1: fake\\n"\nexit 0\n')
+    (bin_dir / "fake-python").write_text("#!/bin/sh\nexit 3\n")
+    for tool in ("nvidia-smi", "fake-python"):
+        os.chmod(bin_dir / tool, 0o755)
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("a@0  --task cartpole-balance\n")
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHON": str(bin_dir / "fake-python"),
+           "AFTER_POLL": "0.05"}
+    env.pop("OUT", None)
+    run = lambda *args: subprocess.run(["bash", script, *args], capture_output=True, text=True, timeout=60, env=env,
+                                       cwd=tmp_path)
+    batch = tmp_path / "runs" / "batch"
+
+    def wait_for(path, text):  # the background command's output, within 20 s
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline:
+            if path.exists() and text in path.read_text():
+                return path.read_text()
+            time.sleep(0.05)
+        raise AssertionError(f"{path}: no {text!r} in {path.read_text() if path.exists() else 'no file'}")
+
+    assert run("start", str(jobs), "60", "5").returncode == 0
+    assert wait_for(batch / "a.rc", "3").strip() == "3"  # the job's exit status
+    # a job still running: the command waits for its .rc
+    with open(batch / "commands.txt", "a") as f:
+        f.write("b (GPU 1): --task cartpole-balance\n")
+    assert run("after", "b", "1", "sh", "-c", "echo ran on $CUDA_VISIBLE_DEVICES").returncode == 0
+    assert run("after", "a", "0", "sh", "-c", "echo ran on $CUDA_VISIBLE_DEVICES").returncode == 0
+    assert "ran on 0" in wait_for(batch / "after-a.log", "ran on")
+    assert "a ended (exit 3)" in (batch / "after-a.log").read_text()
+    assert "ran on" not in (batch / "after-b.log").read_text()
+    (batch / "b.rc").write_text("0\n")
+    assert "ran on 1" in wait_for(batch / "after-b.log", "ran on")
+    refused = run("after", "zz", "1", "true")
+    assert refused.returncode == 2 and "no job 'zz'" in refused.stderr and "(jobs: a b )" in refused.stderr
+    refused = run("after", "a", "x", "true")
+    assert refused.returncode == 2 and "bad GPU 'x'" in refused.stderr
+
+
 def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     """``ingest_batch.sh``: a device batch's results.tar.gz becomes study-runs/ folders, their effective-rank
     figures and every agent's row of the study's table (the job line's --agents dropped)."""

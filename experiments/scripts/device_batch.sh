@@ -5,6 +5,10 @@
 #                                               SECONDS`, in its own session so that it outlives the call), then
 #                                               report after REPORT seconds or when all have ended
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
+#   device_batch.sh after NAME GPU COMMAND...   once the job NAME of the running batch has ended (its exit status
+#                                               is in runs/batch/NAME.rc), run COMMAND on GPU in the background
+#                                               (own session; output in runs/batch/after-NAME.log): a benchmark
+#                                               on a GPU that a finished job left idle; returns at once
 #   device_batch.sh check JOBS                  before spending device time, here on the CPU: validate every
 #                                               line (train --check; studies --dry-run); exit 1 if any fails
 #                                               ($PYTHON picks the interpreter, default python3)
@@ -25,7 +29,7 @@
 # each process takes MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
 set -u
 BATCH=runs/batch
-action=${1:?start, wait or check}
+action=${1:?start, wait, after or check}
 shift
 
 job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines)
@@ -119,6 +123,7 @@ start)
         else
             command="timeout -s TERM $seconds $command"
         fi
+        command="$command; echo \$? >$BATCH/$name.rc"  # the job's end, for `after`
         CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "$command" >"$BATCH/$name.log" 2>&1 </dev/null &
         echo "$name (GPU $gpu): $args" | tee -a "$BATCH/commands.txt"
     done
@@ -126,6 +131,23 @@ start)
     ;;
 wait)
     report_after "${1:?REPORT}"
+    ;;
+after)
+    name=${1:?NAME of a job of the running batch}
+    gpu=${2:?GPU}
+    shift 2
+    [ $# -ge 1 ] || { echo "after: give the command to run once $name has ended" >&2; exit 2; }
+    [[ $gpu =~ ^[0-9]+$ ]] || { echo "after: bad GPU '$gpu': give a number" >&2; exit 2; }
+    if ! grep -q "^$name (GPU" "$BATCH/commands.txt" 2>/dev/null; then
+        known=$(grep -o '^[^ ]* (GPU' "$BATCH/commands.txt" 2>/dev/null | cut -d' ' -f1 | tr '\n' ' ')
+        echo "after: no job '$name' in $BATCH/commands.txt (jobs: ${known:-none})" >&2
+        exit 2
+    fi
+    command=$(printf '%q ' "$@")
+    CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "while [ ! -f $BATCH/$name.rc ]; do sleep ${AFTER_POLL:-5}; done; \
+        echo \"$name ended (exit \$(cat $BATCH/$name.rc)) at \$(date -u +%T); running on GPU $gpu\"; $command" \
+        >"$BATCH/after-$name.log" 2>&1 </dev/null &
+    echo "after $name (GPU $gpu): $*" | tee -a "$BATCH/commands.txt"
     ;;
 check)
     jobs=${1:?JOBS file}
@@ -151,7 +173,7 @@ check)
     exit $failed
     ;;
 *)
-    echo "unknown action $action (start, wait or check)" >&2
+    echo "unknown action $action (start, wait, after or check)" >&2
     exit 2
     ;;
 esac
