@@ -46,3 +46,15 @@ def test_training_plot_has_a_panel_per_logged_metric_and_a_line_per_seed(tmp_pat
     assert steps.tolist() == [2000, 4000] and values.tolist() == [3.5, 5.5]  # mean over the episodes
     assert plot_training(str(tmp_path), rows, "cartpole-balance · tdmpc2", evals) == list(ranked)
     assert (tmp_path / "training.png").stat().st_size > 10_000
+
+
+def test_progress_line_shows_a_dash_until_speed_and_return_are_measured():
+    from lnnmpc.train.report import Progress
+
+    progress = Progress(total=200_000)
+    first = progress.line(4_992)
+    assert "nan" not in first and first.endswith("— steps/s  last eval       —")
+    assert first.startswith("[...") and "4,992/200,000 env steps" in first
+    progress.rate, progress.last_eval = 151.4, 795.04
+    assert progress.line(100_000).endswith("     151 steps/s  last eval   795.0")
+    assert progress.line(100_000).startswith("[" + "#" * 15 + "." * 15 + "]")

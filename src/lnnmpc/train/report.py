@@ -33,11 +33,17 @@ class Progress:
             self.rate = (done - self._last[0]) / max(now - self._last[1], 1e-9)
         if self._last is None or done > self._last[0]:
             self._last = (done, now)
+        sys.stderr.write("\r" + self.line(done))
+        sys.stderr.flush()
+
+    def line(self, done: int) -> str:
+        """The progress line after ``done`` environment steps per seed ("—" for a speed or evaluation not yet
+        measured, e.g. during the random seed phase)."""
         width = 30
         filled = int(width * min(done / self.total, 1.0))
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done:>9,}/{self.total:,} env steps  "
-                         f"{self.rate:8.0f} steps/s  last eval {self.last_eval:7.1f}")
-        sys.stderr.flush()
+        number = lambda x, fmt, pad: f"{'—':>{pad}}" if np.isnan(x) else f"{x:{pad}{fmt}}"
+        return (f"[{'#' * filled}{'.' * (width - filled)}] {done:>9,}/{self.total:,} env steps  "
+                f"{number(self.rate, '.0f', 8)} steps/s  last eval {number(self.last_eval, '.1f', 7)}")
 
 
 def eval_table(rows: list[dict]) -> list[dict]:
