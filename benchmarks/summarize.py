@@ -56,8 +56,7 @@ def _top_scopes(record: dict, count: int = 4) -> str:
     scopes = record.get("by_scope")
     if not scopes:
         return "—"
-    items = scopes.items() if isinstance(scopes, dict) else scopes
-    ranked = sorted(items, key=lambda item: -item[1]["ms_per_call"])[:count]
+    ranked = sorted(scopes.items(), key=lambda item: -item[1]["ms_per_call"])[:count]
     return ", ".join(f"{name} {entry['ms_per_call']:.2f} ms" for name, entry in ranked)
 
 

@@ -42,8 +42,8 @@ def test_update_only_and_profile_records_are_tabulated(tmp_path, monkeypatch, ca
         "by_category": {"matmul": category, "other": {"kernels_per_call": 0.2, "ms_per_call": 0.001}}},
         "burst": {"wall_ms_per_call": 11.11, "busy_ms_per_call": 10.4, "busy_fraction": 0.94,
                   "kernels_per_call": 1107.0, "by_category": {"matmul": category},
-                  "by_scope": [["td_targets forward", {"kernels_per_call": 26.0, "ms_per_call": 0.41}],
-                               ["model_losses backward", {"kernels_per_call": 130.0, "ms_per_call": 3.99}]]}})
+                  "by_scope": {"td_targets forward": {"kernels_per_call": 26.0, "ms_per_call": 0.41},
+                               "model_losses backward": {"kernels_per_call": 130.0, "ms_per_call": 3.99}}}})
     for name, data in (("a-update-only.json", update_only), ("b-profile.json", profile)):
         (tmp_path / name).write_text(json.dumps(data))
     monkeypatch.setattr(summarize, "RESULTS", str(tmp_path))
