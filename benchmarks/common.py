@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import re
 import statistics
 import time
 from importlib import metadata
@@ -60,13 +61,35 @@ def peak_memory_bytes() -> int | None:
     return stats.get("peak_bytes_in_use")
 
 
-def write_json(path: str, payload: dict) -> None:
-    """Writes ``payload`` atomically (temp file + rename), creating folders."""
+def device_tag(kind: str, platform: str) -> str:
+    """A short name for a device in file names: ``cpu``, the model number of a GPU (``NVIDIA H100 80GB HBM3`` ->
+    ``h100``, ``NVIDIA H200`` -> ``h200``), else the device kind as a lower-case slug."""
+    if platform == "cpu":
+        return "cpu"
+    model = re.search(r"\b([a-z]{1,2}\d{2,4}[a-z]?)\b", kind.lower())
+    return model.group(1) if model else re.sub(r"[^a-z0-9]+", "-", kind.lower()).strip("-") or platform
+
+
+def expand_device(path: str) -> str:
+    """``path`` with ``{device}`` replaced by the device this process runs on (:func:`device_tag`), so that a
+    command written before a machine is lent (``--out results/{device}-run16-update.json``) names the card that
+    measured it."""
+    if "{device}" not in str(path):
+        return str(path)
+    device = jax.devices()[0]
+    return str(path).replace("{device}", device_tag(device.device_kind, device.platform))
+
+
+def write_json(path: str, payload: dict) -> str:
+    """Writes ``payload`` atomically (temp file + rename), creating folders; ``{device}`` in ``path`` is expanded
+    (:func:`expand_device`). Returns the path written."""
+    path = expand_device(path)
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     tmp = f"{path}.tmp"
     with open(tmp, "w") as f:
         json.dump(payload, f, indent=2)
     os.replace(tmp, path)
+    return path
 
 
 def default_out(name: str) -> str:

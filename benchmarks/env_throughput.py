@@ -77,7 +77,7 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--walker-sweep", action="store_true", help="time candidate walker settings instead")
     parser.add_argument("--sweep", default=",".join(WALKER_SWEEP), help="which candidates --walker-sweep times")
-    parser.add_argument("--out", default=None)
+    parser.add_argument("--out", default=None, help="JSON path; {device} in it becomes h100, h200, cpu, ...")
     args = parser.parse_args(argv)
     batches = [int(b) for b in args.batches.split(",")]
     out = args.out or default_out("env_throughput" + ("-walker-sweep" if args.walker_sweep else ""))
@@ -94,7 +94,7 @@ def main(argv=None):
         record = measure(task, physics, batch, args.steps, args.repeats)
         record["profile"] = label
         payload["results"].append(record)
-        write_json(out, payload)
+        out = write_json(out, payload)
         print(
             f"[{i + 1}/{len(jobs)}] {task:18s} {label:18s} B={batch:5d}  {record['ms_per_agent_step']:8.3f} ms/step"
             f"  {record['agent_steps_per_s']:12.0f} steps/s  (compile {record['compile_s']:.1f}s, "

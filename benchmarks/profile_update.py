@@ -242,7 +242,7 @@ def main(argv=None):
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
     parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
                         help="agent hyperparameter override, repeatable (e.g. --set rollout_steps=3)")
-    parser.add_argument("--out", default=None)
+    parser.add_argument("--out", default=None, help="JSON path; {device} in it becomes h100, h200, cpu, ...")
     args = parser.parse_args(argv)
     unknown = set(args.what.split(",")) - {"update", "act", "burst"}
     if unknown:
@@ -255,7 +255,7 @@ def main(argv=None):
     for name, (fn, fn_args, per_call) in programs(args).items():
         summary = profile_call(fn, fn_args, args.calls, top=args.top, per_call=per_call)
         payload["results"][name] = summary
-        write_json(out, payload)
+        out = write_json(out, payload)
         print(f"{name:6s} {summary['wall_ms_per_call']:8.2f} ms wall  {summary['busy_ms_per_call']:8.2f} ms busy "
               f"({summary['source']})  {summary['kernels_per_call']:7.0f} kernels/call", flush=True)
         for category, row in summary["by_category"].items():

@@ -188,7 +188,7 @@ def main(argv=None):
                         default="default", help="jax_default_matmul_precision for every program timed")
     parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
                         help="agent hyperparameter override, repeatable (e.g. --set flat_optimizer=true)")
-    parser.add_argument("--out", default=None)
+    parser.add_argument("--out", default=None, help="JSON path; {device} in it becomes h100, h200, cpu, ...")
     args = parser.parse_args(argv)
     if args.in_scan < 0:
         parser.error(f"--in-scan must be >= 0 (0: off), got {args.in_scan}")
@@ -200,7 +200,7 @@ def main(argv=None):
         for seeds, envs in itertools.product(map(int, args.seeds.split(",")), map(int, args.envs.split(","))):
             record = measure(task, seeds, envs, args)
             payload["results"].append(record)
-            write_json(out, payload)
+            out = write_json(out, payload)
             if args.update_only:
                 in_scan = (f", {record['update_in_scan_ms']:.2f} ms in a scan of {args.in_scan}"
                            if args.in_scan else "")

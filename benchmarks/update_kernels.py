@@ -84,7 +84,8 @@ def main() -> None:
                         help="count the trainer's update of this many seeds instead (see the module docstring)")
     parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
                         help="agent hyperparameter override for --loop-seeds, repeatable")
-    parser.add_argument("--out", default=None, help="JSON file for the counts (with device and versions)")
+    parser.add_argument("--out", default=None,
+                        help="JSON file for the counts, with device and versions ({device} becomes h100, cpu, ...)")
     args = parser.parse_args()
     if args.loop_seeds is not None:
         if args.loop_seeds < 1:
@@ -100,7 +101,8 @@ def main() -> None:
     for name, value in counts.items():
         print(jax.default_backend(), args.agent, args.task, name, value)
     if args.out:
-        write_json(args.out, {"environment": environment_info(), "config": vars(args), "update_ops": counts})
+        out = write_json(args.out, {"environment": environment_info(), "config": vars(args), "update_ops": counts})
+        print(f"wrote {out}")
 
 
 if __name__ == "__main__":
