@@ -343,7 +343,8 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
 
 def test_ingest_batch_never_replaces_a_longer_filed_run_with_a_shorter_copy(tmp_path):
     """A run killed early on the device (fewer env steps than the copy filed before) is kept out of study-runs/
-    unless FORCE=1; a copy that reached as far or further replaces the filed one; a new folder is always filed."""
+    unless FORCE=1; a copy that reached as far or further replaces the filed one, listing the filed copy's
+    evaluation files it drops; a new folder is always filed."""
     import subprocess
     import sys
     import tarfile
@@ -374,9 +375,14 @@ def test_ingest_batch_never_replaces_a_longer_filed_run_with_a_shorter_copy(tmp_
     assert (last_step(long_run), last_step(other)) == (164_688, 40_000)
     forced = subprocess.run(["bash", script, shorter], cwd=work, env={**env, "FORCE": "1"}, timeout=120)
     assert forced.returncode == 0 and last_step(long_run) == 20_976
+    filed_evals = work / "experiments" / "results" / "study-runs" / long_run / "evals"
+    filed_evals.mkdir()
+    (filed_evals / "horizon10-clean-20976.csv").write_text("env_step,seed,episode,return\n20976,0,0,1.0\n")
     longer = batch_tar("longer", {long_run: 212_592})
-    assert subprocess.run(["bash", script, longer], cwd=work, env=env, timeout=120).returncode == 0
-    assert last_step(long_run) == 212_592
+    result = subprocess.run(["bash", script, longer], cwd=work, env=env, timeout=120, capture_output=True, text=True)
+    assert result.returncode == 0 and last_step(long_run) == 212_592, result.stderr
+    assert f"dropped  experiments/results/study-runs/{long_run}/evals/horizon10-clean-20976.csv" in result.stdout
+    assert not filed_evals.exists() and result.stdout.count("dropped") == 1
 
 
 def test_summarize_against_hand_computation():
