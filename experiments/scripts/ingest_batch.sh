@@ -4,11 +4,11 @@
 #   experiments/scripts/ingest_batch.sh RESULTS_TAR_GZ
 #
 # - every study run folder of the batch (runs/batch/experiments/<task>/<agent>/<condition>, no checkpoints) is
-#   copied into experiments/results/study-runs/, the runs-dir the committed study tables are built from (Figure
-#   5.19's run, replaced there, is in experiments/results/study-runs-fig5_19-h100/)
-#   (a newer copy of a run replaces the older one, unless it reached fewer environment steps: a run killed early
-#   on the device never overwrites a longer one filed before; FORCE=1 replaces it anyway; the older copy's
-#   evaluation files that the new copy lacks are listed as "dropped", since a table may have been built from them);
+#   copied into experiments/results/study-runs/, the runs-dir the committed study tables are built from (but
+#   Figure 5.19's: experiments/results/study-runs-fig5_19-h100/). A newer copy of a run replaces the older one,
+#   unless it reached fewer environment steps: a run killed early on the device never overwrites a longer one
+#   filed before; FORCE=1 replaces it anyway. The older copy's evaluation files that the new copy lacks are listed
+#   as "dropped", since a table may have been built from them;
 # - for each of them whose eval.csv logged the effective rank: <run>/analysis/effective_rank.{csv,png}
 #   (`lnnmpc.analysis.report --ranks-only`);
 # - each study of the batch (its commands.txt) is aggregated again over study-runs/ into
@@ -44,8 +44,8 @@ if [ -d "$tmp/experiments" ]; then
         fi
         for eval_file in "$runs/$rel"/evals/*.csv; do  # the older copy's evaluations that the new one lacks
             [ -f "$eval_file" ] && [ ! -f "$run/evals/$(basename "$eval_file")" ] || continue
-            echo "dropped  $eval_file (the replaced copy's; a committed table built from it loses its source:" \
-                "git mv the old run to another runs-dir first, as experiments/results/study-runs-fig5_19-h100)"
+            echo "dropped  $eval_file (the replaced copy's; if a committed table was built from it, restore the" \
+                "old run from git into a runs-dir of its own, as experiments/results/study-runs-fig5_19-h100)"
         done
         rm -rf "${runs:?}/$rel"
         mkdir -p "$runs/$(dirname "$rel")"
