@@ -24,7 +24,7 @@ def test_device_tag_names_the_card(kind, platform, tag):
 
 def test_write_json_expands_the_device_and_returns_the_path(tmp_path):
     device = jax.devices()[0]
-    tag = "cpu" if device.platform == "cpu" else common.device_tag(device.device_kind, device.platform)
+    tag = common.device_tag(device.device_kind, device.platform)  # "cpu" on the CPU backend (tested above)
     written = common.write_json(str(tmp_path / "sub" / "{device}-run-update.json"), {"update_ms": 1.5})
     assert written == str(tmp_path / "sub" / f"{tag}-run-update.json")
     assert json.loads(Path(written).read_text()) == {"update_ms": 1.5}
