@@ -31,7 +31,7 @@ if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
 # Test files by measured cost on a 2-core CPU (compile-bound), most expensive first. With `--dist loadfile`
 # xdist hands out whole files; in collection order (see pytest_configure) the long files start at once on both
 # workers and the many short ones fill the gaps at the end (longest processing time first). xdist's default order
-# (most tests first) would leave the one-test learning file and the seven-test trainer file for last. Files not
+# (most tests first) would leave the eight-test trainer file, the longest, for last. Files not
 # listed keep pytest's order after these.
 # The learning check lives in test_trainer_run.py (its reference run is the learning run; a separate in-process
 # learning file cost ~110-200 s of compiling the same kinds of programs again).
