@@ -206,19 +206,22 @@ def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
     import lnnmpc
 
     monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
-    result = lnnmpc.evaluate(str(reference), episodes=2, checkpoint=1598, verbose=False)
-    assert result.returns.shape == (2, 2) and result.checkpoint == 1598 and result.backend == "mjx"
+    result = lnnmpc.evaluate(str(reference), episodes=4, checkpoint=1598, verbose=False)
+    assert result.returns.shape == (2, 4) and result.checkpoint == 1598 and result.backend == "mjx"
     assert np.all((result.returns >= 0) & (result.returns <= 1000))
-    assert os.path.basename(result.path) == "mjx-clean-1598.csv" and len(_rows(result.path)) == 4
+    assert os.path.basename(result.path) == "mjx-clean-1598.csv" and len(_rows(result.path)) == 8
     with pytest.raises(lnnmpc.ConfigError, match="checkpoint 500 is not in .*; available: 1000, 1598, 2196, 2796"):
         lnnmpc.evaluate(str(reference), checkpoint=500)
 
 
 def test_trained_agent_beats_its_untrained_self(reference, cache):
     """The reference run's final agent against freshly initialised parameters (zero-initialised reward and Q
-    heads: MPPI cannot tell actions apart), same evaluation keys, 2 deterministic episodes per seed, through the
+    heads: MPPI cannot tell actions apart), same evaluation keys, 4 deterministic episodes per seed, through the
     program ``lnnmpc.evaluate`` compiles (a compilation-cache hit after the test above). Both seeds must improve by
-    a wide margin. Measured on CPU (jax 0.10.2): untrained 35.8 / 25.9, trained 194.1 / 372.4."""
+    a wide margin. Measured on CPU (jax 0.10.2), seed means over 5 draws of initial parameters and evaluation
+    keys: untrained 0.5-39.7, the final agent 201-309. Training is not monotone at this size: the same run's
+    agent at 2,196 steps scored 91-135 (at 1,598: 119-192), and another CPU's round-off can end the run in such
+    a dip, so the bounds leave room for it while no untrained draw comes near them."""
     import jax
 
     from lnnmpc.train.evaluate import load_policy
@@ -230,13 +233,13 @@ def test_trained_agent_beats_its_untrained_self(reference, cache):
     policy = load_policy(str(reference))
     assert policy.checkpoint == CHECKPOINTS[-1]
     agent, env, placement = policy.loop.agent, policy.loop.env, SeedPlacement(1)
-    evaluate = placement.compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=2)).evaluate)
+    evaluate = placement.compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=4)).evaluate)
     keys = placement.put(jax.random.split(jax.random.key(0), 2))
     untrained = placement.compile(agent.init)(placement.put(jax.random.split(jax.random.key(1), 2)))
     before = np.asarray(evaluate(untrained, keys)).mean(axis=1)
     after = np.asarray(evaluate(placement.put(policy.agent_state), keys)).mean(axis=1)
-    assert (before < 60).all(), before  # hanging pole, no swing: almost no reward
-    assert (after > before + 60).all() and after.mean() > 100, (before, after)
+    assert (before < 60).all(), before  # no swing-up: little reward
+    assert (after > before + 40).all() and after.mean() > 90, (before, after)
 
 
 def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(reference, cache):
