@@ -215,29 +215,26 @@ def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
 
 
 def test_trained_agent_beats_its_untrained_self(reference, cache):
-    """The reference run's final agent against freshly initialised parameters (zero-initialised reward and Q
-    heads: MPPI cannot tell actions apart), same evaluation keys, 4 deterministic episodes per seed, through the
-    program ``lnnmpc.evaluate`` compiles (a compilation-cache hit after the test above). Both seeds must improve by
-    a wide margin. Measured on CPU (jax 0.10.2), seed means over 5 draws of initial parameters and evaluation
-    keys: untrained 0.5-39.7, the final agent 201-309. Training is not monotone at this size: the same run's
-    agent at 2,196 steps scored 91-135 (at 1,598: 119-192), and another CPU's round-off can end the run in such
-    a dip, so the bounds leave room for it while no untrained draw comes near them."""
+    """The reference run's final agent against freshly initialised parameters (zero-initialised reward and Q heads: MPPI
+    cannot tell actions apart), same evaluation keys, 4 deterministic episodes per seed, through ``mjx_evaluator``, the
+    program ``lnnmpc.evaluate`` runs (a compilation-cache hit after the test above). Both seeds must improve by a wide
+    margin. Measured on CPU (jax 0.10.2), seed means over 5 draws of initial parameters and evaluation keys: untrained
+    0.5-39.7, the final agent 201-309. Training is not monotone at this size: the same run's agent at 2,196 steps scored
+    91-135 (at 1,598: 119-192), and another CPU's round-off can end the run in such a dip, so the bounds leave room for
+    it while no untrained draw comes near them."""
     import jax
 
-    from lnnmpc.train.evaluate import load_policy
-    from lnnmpc.train.loop import LoopConfig, TrainingLoop
-    from lnnmpc.train.sharding import SeedPlacement
+    from lnnmpc.train.evaluate import load_policy, mjx_evaluator
     from lnnmpc.train.trainer import enable_compile_cache
 
     enable_compile_cache(cache)
     policy = load_policy(str(reference))
     assert policy.checkpoint == CHECKPOINTS[-1]
-    agent, env, placement = policy.loop.agent, policy.loop.env, SeedPlacement(1)
-    evaluate = placement.compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=4)).evaluate)
-    keys = placement.put(jax.random.split(jax.random.key(0), 2))
-    untrained = placement.compile(agent.init)(placement.put(jax.random.split(jax.random.key(1), 2)))
-    before = np.asarray(evaluate(untrained, keys)).mean(axis=1)
-    after = np.asarray(evaluate(placement.put(policy.agent_state), keys)).mean(axis=1)
+    agent = policy.loop.agent
+    evaluate = mjx_evaluator(agent, policy.loop.env, episodes=4, seeds=2)
+    untrained = jax.jit(jax.vmap(agent.init))(jax.random.split(jax.random.key(1), 2))
+    before = evaluate(untrained, jax.random.key(0)).mean(axis=1)
+    after = evaluate(policy.agent_state, jax.random.key(0)).mean(axis=1)
     assert (before < 60).all(), before  # no swing-up: little reward
     assert (after > before + 40).all() and after.mean() > 90, (before, after)
 

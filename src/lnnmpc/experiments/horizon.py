@@ -16,8 +16,7 @@ from lnnmpc import envs
 from lnnmpc.agents.registry import make_agent
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import obs_tag, parse_obs, require_int
-from lnnmpc.train.evaluate import load_policy
-from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.evaluate import load_policy, mjx_evaluator
 
 
 def planner_times(agent, state, env, key: jax.Array, calls: int = 30) -> np.ndarray:
@@ -53,10 +52,8 @@ def evaluate_horizon(run: str, horizon: int, *, obs: str | dict | None = None, e
     env = envs.make(config.task, physics=config.physics, **options)
     agent = make_agent(config.agent, env.observation_size, env.action_size, model_size=config.model_size,
                        small=config.small, overrides={**config.overrides, "plan_horizon": horizon})
-    loop = TrainingLoop(agent, env, env, LoopConfig(eval_episodes=episodes))
     key = jax.random.key(seed)
-    returns = np.asarray(jax.jit(jax.vmap(loop.evaluate))(policy.agent_state,
-                                                         jax.random.split(key, config.seeds)))
+    returns = mjx_evaluator(agent, env, episodes, config.seeds)(policy.agent_state, key)
     first_seed = jax.tree_util.tree_map(lambda x: x[0], policy.agent_state)
     times = planner_times(agent, first_seed, env, jax.random.fold_in(key, 1), calls=max(timing_calls, returns.size))
     path = out or os.path.join(run, "evals", f"horizon{horizon}-{obs_tag(options)}-{policy.checkpoint}.csv")

@@ -102,6 +102,20 @@ def _restored(policy: Policy, run: str) -> Policy:
     return dataclasses.replace(policy, agent_state=state.agent)
 
 
+def mjx_evaluator(agent, env, episodes: int, seeds: int):
+    """A compiled evaluation of ``episodes`` deterministic MPPI episodes per seed on MJX ``env``: returns
+    ``run(agent_state, key) -> (seeds, episodes)`` returns, the seeds' keys split from ``key``. The program is the
+    trainer's for the same settings (a compilation-cache hit); call ``run`` for as many agent states as needed."""
+    placement = SeedPlacement(1)
+    program = placement.compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=episodes)).evaluate)
+
+    def run(agent_state, key: jax.Array) -> np.ndarray:
+        keys = placement.put(jax.random.split(key, seeds))
+        return np.asarray(program(placement.put(agent_state), keys))
+
+    return run
+
+
 def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, backend: str = "mjx",
              checkpoint: int | None = None, seed: int = 0, out: str | None = None,
              verbose: bool = True) -> EvalResult:
@@ -125,10 +139,7 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     check_observation_size(env, policy)
     key = jax.random.key(seed)
     if backend == "mjx":
-        loop = TrainingLoop(policy.loop.agent, env, env, LoopConfig(eval_episodes=episodes))
-        placement = SeedPlacement(1)  # the trainer's program for the same settings (a compilation-cache hit)
-        keys = placement.put(jax.random.split(key, config.seeds))
-        returns = np.asarray(placement.compile(loop.evaluate)(placement.put(policy.agent_state), keys))
+        returns = mjx_evaluator(policy.loop.agent, env, episodes, config.seeds)(policy.agent_state, key)
     else:
         from lnnmpc.train.dm_backend import run_episodes
 
