@@ -130,6 +130,8 @@ start)
     report_after "$report"
     ;;
 wait)
+    [ -f "$BATCH/started" ] || { echo "no batch on this machine ($BATCH/started is missing): the machine that ran"\
+        "'start' went back (idle release) and this is a fresh one; its runs and checkpoints are gone" >&2; exit 1; }
     report_after "${1:?REPORT}"
     ;;
 after)
