@@ -32,8 +32,9 @@ def _with_in_scan(record: dict, part: str) -> str:
 
 def _setting(payload: dict, task: str, agent: str) -> str:
     """What a training benchmark of ``agent`` on ``task`` changed from the defaults: matmul precision, ``--set``
-    overrides that differ from the agent's task defaults (the walker defaults of the LNN agents), XLA flags; ""
-    for none."""
+    overrides that differ from the agent's task defaults (the walker defaults of the LNN agents), the task
+    defaults a record did not set (the benchmarks build the agent from ``--set`` alone, so a record made before a
+    default was added ran without it: "no rollout_stride=3"), XLA flags; "" for none."""
     from lnnmpc.agents.registry import task_default_overrides
     from lnnmpc.train.config import parse_overrides
 
@@ -41,10 +42,13 @@ def _setting(payload: dict, task: str, agent: str) -> str:
     if args.get("matmul_precision", "default") != "default":
         parts.append(f"{args['matmul_precision']} products")
     defaults = task_default_overrides(agent, task)
+    given = parse_overrides(list(args.get("overrides") or []))
     for item in args.get("overrides") or []:
         ((key, value),) = parse_overrides([item]).items()
         if key not in defaults or defaults[key] != value:
             parts.append(item)
+    parts += [f"no {key}={value:g}" if isinstance(value, float) else f"no {key}={value}"
+              for key, value in defaults.items() if key not in given]
     if payload["env"].get("xla_flags"):
         parts.append(f"XLA_FLAGS `{payload['env']['xla_flags']}`")
     return f" ({'; '.join(parts)})" if parts else ""

@@ -8,7 +8,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import summarize  # noqa: E402
 
-WALKER_DEFAULTS = ["input_transform=symlog", "lambda_=0", "rollout_steps=3"]
+WALKER_DEFAULTS = ["input_transform=symlog", "lambda_=0", "rollout_steps=3", "rollout_stride=3"]
 
 
 def payload(overrides, flags="", precision="default", benchmark="train_throughput", results=None):
@@ -23,10 +23,15 @@ def test_setting_hides_only_the_agents_own_task_defaults():
     assert summarize._setting(walker, "walker-run", "cfc-zp-det") == " (scan_unroll=4)"
     # the same overrides are no defaults on cartpole, nor for tdmpc2 on walker
     assert summarize._setting(walker, "cartpole-swingup", "cfc-zp-det") == (
-        " (input_transform=symlog; lambda_=0; rollout_steps=3; scan_unroll=4)")
+        " (input_transform=symlog; lambda_=0; rollout_steps=3; rollout_stride=3; scan_unroll=4)")
     assert "lambda_=0" in summarize._setting(walker, "walker-run", "tdmpc2")
     # a walker default set to another value is a change
-    assert summarize._setting(payload(["lambda_=0.95"]), "walker-run", "cfc-zp-det") == " (lambda_=0.95)"
+    assert summarize._setting(payload([*WALKER_DEFAULTS[:3], "lambda_=0.95"][1:]), "walker-run", "cfc-zp-det") == (
+        " (lambda_=0.95; no input_transform=symlog; no rollout_stride=3)")
+    # a record made before a default existed ran without it (the benchmarks apply --set only), and says so
+    before_stride = payload(WALKER_DEFAULTS[:3])
+    assert summarize._setting(before_stride, "walker-run", "cfc-zp-det") == " (no rollout_stride=3)"
+    assert summarize._setting(payload([]), "walker-run", "tdmpc2") == ""
     both = payload(WALKER_DEFAULTS, flags="--xla_gpu_enable_command_buffer=", precision="bfloat16")
     assert summarize._setting(both, "walker-run", "cfc-zp-det") == (
         " (bfloat16 products; XLA_FLAGS `--xla_gpu_enable_command_buffer=`)")
@@ -34,8 +39,9 @@ def test_setting_hides_only_the_agents_own_task_defaults():
 
 
 def test_update_only_and_profile_records_are_tabulated(tmp_path, monkeypatch, capsys):
-    update_only = payload(["scan_unroll=43"], results=[{"task": "walker-run", "agent": "cfc-zp-det", "seeds": 3,
-                                                          "envs": 1, "update_ms": 12.87, "update_compile_s": 70.0}])
+    update_only = payload([*WALKER_DEFAULTS, "scan_unroll=43"], results=[
+        {"task": "walker-run", "agent": "cfc-zp-det", "seeds": 3, "envs": 1, "update_ms": 12.87,
+         "update_compile_s": 70.0}])
     category = {"kernels_per_call": 239.0, "ms_per_call": 3.5}
     profile = payload(WALKER_DEFAULTS, benchmark="profile_update", results={"update": {
         "wall_ms_per_call": 14.21, "busy_ms_per_call": 10.33, "busy_fraction": 0.727, "kernels_per_call": 1383.0,

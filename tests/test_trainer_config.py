@@ -245,12 +245,15 @@ def test_new_walker_runs_of_lnn_agents_record_the_walker_defaults(tmp_path):
     folder's recorded overrides hold when the same command is run again."""
     walker = {"task": "walker-run", "small": True}
     setup = validate(TrainConfig(**walker, agent="cfc-zp-det", out=str(tmp_path / "a")))
-    assert setup.config.overrides == {"input_transform": "symlog", "lambda_": 0.0, "rollout_steps": 3}
+    assert setup.config.overrides == {"input_transform": "symlog", "lambda_": 0.0, "rollout_steps": 3,
+                                      "rollout_stride": 3}
     assert setup.loop.agent.config.model.input_transform == "symlog"
-    assert (setup.loop.agent.config.lambda_, setup.loop.agent.config.rollout_steps) == (0.0, 3)
+    agent = setup.loop.agent.config
+    assert (agent.lambda_, agent.rollout_steps, agent.rollout_stride) == (0.0, 3, 3)
     mine = validate(TrainConfig(**walker, agent="ltc-op-det", overrides={"input_transform": "none", "lambda_": 0.5},
                                 out=str(tmp_path / "b")))
-    assert mine.config.overrides == {"input_transform": "none", "lambda_": 0.5, "rollout_steps": 3}
+    assert mine.config.overrides == {"input_transform": "none", "lambda_": 0.5, "rollout_steps": 3,
+                                     "rollout_stride": 3}
     assert mine.loop.agent.config.lambda_ == 0.5
     assert validate(TrainConfig(**walker, agent="tdmpc2", out=str(tmp_path / "c"))).config.overrides == {}
     cartpole = validate(TrainConfig(task="cartpole-swingup", small=True, agent="cfc-op-det", out=str(tmp_path / "d")))
@@ -262,7 +265,8 @@ def test_new_walker_runs_of_lnn_agents_record_the_walker_defaults(tmp_path):
     again = validate(TrainConfig(**walker, agent="cfc-zp-det", out=old, overrides={"input_transform": "none"}))
     assert again.loop.agent.config.model.input_transform == "none"
     resumed = validate(resume=old).loop.agent.config
-    assert (resumed.model.input_transform, resumed.lambda_, resumed.rollout_steps) == ("none", 0.95, 1)
+    assert (resumed.model.input_transform, resumed.lambda_, resumed.rollout_steps, resumed.rollout_stride) == (
+        "none", 0.95, 1, 1)
     recorded = str(tmp_path / "recorded")
     os.makedirs(recorded)
     runfolder.write_config(recorded, TrainConfig(**walker, agent="cfc-zp-det", out=recorded, replay_capacity=3000,

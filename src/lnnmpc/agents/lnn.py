@@ -32,10 +32,11 @@ state h_{t−1} the actor held before reading o_t, and a_{t−1} (zeros at an ep
   K = 1 bit for bit the unstacked loss; with K > 1 one Q-dropout mask over the stack instead of one per depth).
   With K = 1 the planner scores action sequences with heads that never saw a predicted latent, and its
   H_plan = 10 steps go that far off the encoder's latents.
-* ``rollout_stride`` S (speed; default 1): the depths k >= 1 start only from every S-th position of the window
-  (0, S, 2S, ...), so depth k has ceil((H − k) / S) positions instead of H − k; depth 0 keeps all H. The heads
-  and losses over the stacked depths are most of an update's time (62% for walker with K = 3 on an H100:
-  benchmarks/results/README.md, run 15), and K = 3 stacks 93 positions at S = 1, 53 at S = 3. Each depth's loss
+* ``rollout_stride`` S (speed; default 1, 3 on walker: registry.LNN_TASK_DEFAULTS): the depths k >= 1 start
+  only from every S-th position of the window (0, S, 2S, ...), so depth k has ceil((H − k) / S) positions
+  instead of H − k; depth 0 keeps all H. The heads and losses over the stacked depths are most of an update's
+  time (62% for walker with K = 3 on an H100: benchmarks/results/README.md, run 15), and K = 3 stacks 93
+  positions at S = 1, 53 at S = 3. Each depth's loss
   is still the mean over its positions, weighted ρ^(t − k) by its positions t (ρ = 1 by default).
 
 Acting (:meth:`LNNTDMPC2.act`): the encoder reads [o_t, a_{t−1}] with Δt_t, then MPPI plans from h_t. The
