@@ -41,8 +41,14 @@ def _env(cache: str, **extra) -> dict:
             **extra}
 
 
+# `python -m lnnmpc.train.cli` (runpy runs the module as -m does), with the test session's GC thresholds (conftest:
+# the subprocesses mostly trace and load cached programs, where the default thresholds cost ~7% of their CPU time).
+_LAUNCH = ("import gc, os, runpy; gc.set_threshold(*map(int, os.environ.get('LNNMPC_TEST_GC_THRESHOLDS', "
+           "'700,10,10').split(','))); runpy.run_module('lnnmpc.train.cli', run_name='__main__', alter_sys=True)")
+
+
 def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "lnnmpc.train.cli", *args]
+    return [sys.executable, "-c", _LAUNCH, *args]
 
 
 def _run(args: list[str], cache: str, timeout: float = 600, **extra) -> subprocess.CompletedProcess:
