@@ -22,9 +22,12 @@ os.environ["LNNMPC_COMPILE_CACHE"] = os.environ["LNNMPC_TEST_XLA_CACHE"]
 
 # The suite is compile-bound (the CPU learning test: 210 of its 267 s alone are XLA compiling its four
 # programs). XLA's backend optimisation level 1 instead of 2 cut that test to 224 s with the same execution time
-# (level 0 compiles faster still but ran three times slower). Tests only: trainer subprocesses get it through
-# LNNMPC_TEST_XLA_FLAGS (tests/test_trainer_run.py), runs of `make train` keep XLA's defaults.
-TEST_XLA_FLAGS = "--xla_backend_optimization_level=1"
+# (level 0 compiles faster still but ran three times slower). XLA's CPU fusion emitters (MLIR, on by default in
+# jaxlib 0.10) are the slower path to compile: turned off, the XLA compile time of test_trainer_run's four programs
+# (compiled one after the other, CPU only) fell from 78-91 s to 64-66 s while their execution got ~20% slower
+# (a small part there). Tests only: trainer subprocesses get these through LNNMPC_TEST_XLA_FLAGS
+# (tests/test_trainer_run.py), runs of `make train` keep XLA's defaults.
+TEST_XLA_FLAGS = "--xla_backend_optimization_level=1 --xla_cpu_use_fusion_emitters=false"
 os.environ["LNNMPC_TEST_XLA_FLAGS"] = TEST_XLA_FLAGS
 if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {TEST_XLA_FLAGS}".strip()
