@@ -106,6 +106,11 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     summary = (reference / "summary.md").read_text()
     assert "cartpole-swingup · tdmpc2 · 2 seed(s)" in summary and "**Final return" in summary
     assert "| agent | tdmpc2 (model size 1M, small) |" in summary
+    seed_mean = lambda step, seed: np.mean([float(r["return"]) for r in rows
+                                            if int(r["env_step"]) == step and int(r["seed"]) == seed])
+    recent = [np.mean([seed_mean(step, seed) for seed in (0, 1)]) for step in steps[-3:]]
+    assert (f"Mean of the last 3 evaluations {np.mean(recent):.1f} (from {min(recent):.1f} to {max(recent):.1f})"
+            in summary)
     assert summary.count("\n") < 40  # one screen
     assert (reference / "curve.png").stat().st_size > 10_000
     assert (reference / "training.png").stat().st_size > 10_000

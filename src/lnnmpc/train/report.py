@@ -170,6 +170,9 @@ def _agent_size(c: dict) -> str:
     return f"model size {c['model_size']}M" if c["agent"] == "tdmpc2" else "light configuration"
 
 
+LAST_EVALUATIONS = 3  # summary.md's mean over the latest evaluations
+
+
 def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, float], extra: dict) -> str:
     """The one-screen summary.md of a run."""
     c = config["config"]
@@ -189,8 +192,13 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
     if table:
         last, best = table[-1], max(table, key=lambda t: t["mean"])
         lines += [f"**Final return {last['mean']:.1f} ± {last['std']:.1f}** at {last['env_step']:,} env steps "
-                  f"(best {best['mean']:.1f} at {best['env_step']:,}).", "",
-                  "| env step | mean | std | min | max |", "|---:|---:|---:|---:|---:|"]
+                  f"(best {best['mean']:.1f} at {best['env_step']:,}).", ""]
+        if len(table) >= LAST_EVALUATIONS:
+            recent = [t["mean"] for t in table[-LAST_EVALUATIONS:]]
+            lines += [f"Mean of the last {LAST_EVALUATIONS} evaluations {np.mean(recent):.1f} (from "
+                      f"{min(recent):.1f} to {max(recent):.1f}): steadier than one evaluation where the return swings "
+                      "between checkpoints.", ""]
+        lines += ["| env step | mean | std | min | max |", "|---:|---:|---:|---:|---:|"]
         lines += [f"| {t['env_step']:,} | {t['mean']:.1f} | {t['std']:.1f} | {t['min']:.1f} | {t['max']:.1f} |"
                   for t in table[-6:]]
         lines.append("")
