@@ -9,7 +9,9 @@ steps, command buffers) or to a few long ones (make those faster). Per program i
 * ``busy_ms_per_call``: the union of the kernels' intervals per call, against ``wall_ms_per_call`` (host clock,
   dispatch to ready); ``busy_fraction`` = busy / wall: low means launch gaps dominate;
 * ``by_category``: matmul / fusion / reduce / copy / other kernels (count and time per call);
-* ``top_kernels``: the kernels with the most time per call (name, launches and µs per call, mean µs);
+* ``top_kernels``: the kernels with the most time per call (name, launches and µs per call, mean µs; for a
+  compiled program also the ``op_name`` of the jax operation it ran and its scope, to tell which layer or
+  transpose a long kernel belongs to);
 * ``by_scope``: kernels and time per call by the update's named scopes (``SCOPES``: replay sample, encoder
   burn-in and window, TD targets, model losses, optimisers, ...), forward and backward apart, from the
   ``op_name`` of the HLO instruction each kernel ran.
@@ -147,11 +149,14 @@ def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: 
     per_name = collections.defaultdict(lambda: [0, 0.0])
     per_category = collections.defaultdict(lambda: [0, 0.0])
     per_scope = collections.defaultdict(lambda: [0, 0.0])
+    name_op = {}  # kernel name -> the op_name of the first of its launches that matched an instruction
     for e in kernels:
         per_name[e["name"]][0] += 1
         per_name[e["name"]][1] += e["dur"]
-        for table, key in ((per_category, kernel_category(e["name"])),
-                           (per_scope, scope_label(kernel_op_name(e, op_names or {})))):
+        op_name = kernel_op_name(e, op_names or {})
+        if op_name is not None:
+            name_op.setdefault(e["name"], op_name)
+        for table, key in ((per_category, kernel_category(e["name"])), (per_scope, scope_label(op_name))):
             table[key][0] += 1
             table[key][1] += e["dur"]
     busy_us = interval_union([(e["ts"], e["ts"] + e["dur"]) for e in kernels])
@@ -171,7 +176,10 @@ def summarize_kernels(events: list[dict], calls: int, wall_s: list[float], top: 
         "busy_fraction": busy_ms / wall_ms if wall_ms > 0 else None,
         "by_category": {name: {"kernels_per_call": n / calls, "ms_per_call": us / 1e3 / calls}
                         for name, (n, us) in sorted(per_category.items(), key=lambda item: -item[1][1])},
-        "top_kernels": [{"name": name, "launches_per_call": n / calls, "us_per_call": us / calls, "mean_us": us / n}
+        # with op_names, each also with the jax op it ran (``op_name``: which layer, which transpose) and its scope
+        "top_kernels": [{"name": name, "launches_per_call": n / calls, "us_per_call": us / calls, "mean_us": us / n,
+                         **({"op_name": name_op.get(name), "scope": scope_label(name_op.get(name))}
+                            if op_names else {})}
                         for name, (n, us) in ranked],
         **({"by_scope": {name: {"kernels_per_call": n / calls, "ms_per_call": us / 1e3 / calls}
                          for name, (n, us) in sorted(per_scope.items(), key=lambda item: -item[1][1])}}

@@ -132,7 +132,14 @@ def test_summary_by_scope_matches_kernels_by_name_or_hlo_op():
         "unknown": {"kernels_per_call": 1.0, "ms_per_call": pytest.approx((2 + 10) / 1e3 / 2)},
         "encoder_window backward": {"kernels_per_call": 0.5, "ms_per_call": pytest.approx(10 / 1e3 / 2)},
     }
-    assert "by_scope" not in pu.summarize_kernels(gpu_trace(), calls=2, wall_s=[0.05, 0.03])
+    top = {row["name"]: row for row in summary["top_kernels"]}
+    assert top["loop_fusion"]["op_name"] == op_names["loop_fusion"]
+    assert top["loop_fusion"]["scope"] == "encoder_window forward"
+    # cutlass_gemm's first launch ran custom-call.3; its second matched nothing, which does not erase the name
+    assert top["cutlass_gemm"]["op_name"] == op_names["custom_call_3"]
+    assert top["Memcpy DtoD"]["op_name"] is None and top["Memcpy DtoD"]["scope"] == "unknown"
+    plain = pu.summarize_kernels(gpu_trace(), calls=2, wall_s=[0.05, 0.03])
+    assert "by_scope" not in plain and "op_name" not in plain["top_kernels"][0]
 
 
 def test_the_liquid_update_carries_every_scope_the_profile_sums():
