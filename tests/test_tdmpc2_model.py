@@ -56,6 +56,33 @@ def test_q_heads_are_independent_and_dropout_is_train_only(small):
     assert not np.allclose(np.asarray(train), np.asarray(evals[0]))
 
 
+def _numpy_head(params: dict, head: int, x: np.ndarray) -> np.ndarray:
+    """One Q head in float64 numpy: (Dense -> LayerNorm -> Mish) x 2 -> Dense."""
+    p = jax.tree_util.tree_map(lambda a: np.asarray(a[head], np.float64), params)
+    for i in range(2):
+        x = x @ p[f"Dense_{i}"]["kernel"] + p[f"Dense_{i}"]["bias"]
+        x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-5)
+        x = x * p[f"LayerNorm_{i}"]["scale"] + p[f"LayerNorm_{i}"]["bias"]
+        x = x * np.tanh(np.log1p(np.exp(x)))
+    return x @ p["Dense_2"]["kernel"] + p["Dense_2"]["bias"]
+
+
+def test_each_q_head_matches_its_own_numpy_mlp_on_batched_inputs(small):
+    """The ensemble (input broadcast over heads, the head axis in front) computes head i with head i's parameters
+    alone, for inputs with several batch axes (as the update's (positions, batch) and a vmap over seeds give)."""
+    config, model, variables = small
+    rng = np.random.default_rng(0)
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(rng.normal(0, 0.3, a.shape), a.dtype), variables["params"])
+    z, a = rng.normal(size=(2, 5, 16)).astype(np.float32), rng.normal(size=(2, 5, 1)).astype(np.float32)
+    q = np.asarray(model.apply({"params": params}, z, a, method="q"))
+    assert q.shape == (config.num_q, 2, 5, 101)
+    x = np.concatenate([z, a], axis=-1).astype(np.float64)
+    for head in range(config.num_q):
+        np.testing.assert_allclose(q[head], _numpy_head(params["q_heads"], head, x), rtol=2e-4, atol=2e-4)
+    seeds = jax.vmap(lambda zz, aa: model.apply({"params": params}, zz, aa, method="q"))(z, a)  # batch over axis 0
+    np.testing.assert_allclose(np.asarray(seeds).transpose(1, 0, 2, 3), q, rtol=1e-5, atol=1e-5)
+
+
 def test_simnorm_matches_numpy():
     x = np.random.default_rng(0).normal(size=(3, 16))
     groups = x.reshape(3, 2, 8)

@@ -120,8 +120,12 @@ class WorldModel(nn.Module):
         c = self.config
         self.reward_head = MLP((c.mlp_dim, c.mlp_dim), c.num_bins, zero_output=True)
         self.policy_head = MLP((c.mlp_dim, c.mlp_dim), 2 * c.action_dim)
+        # The heads take their input with the head axis in front (q() broadcasts it): with a shared input
+        # (in_axes=None) the first layer's output comes out (..., num_q, mlp_dim) and vmap moves the head axis
+        # to the front with a transpose of every hidden activation, forward and backward (on an H100 the
+        # update's longest kernels, run 19). Same parameters, dropout masks and outputs either way.
         q_ensemble = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True, "dropout": True},
-                             in_axes=None, axis_size=c.num_q)
+                             in_axes=(0, None), axis_size=c.num_q)
         self.q_heads = q_ensemble((c.mlp_dim, c.mlp_dim), c.num_bins, dropout=c.q_dropout, zero_output=True)
 
     def encode(self, obs: jax.Array) -> jax.Array:
@@ -143,7 +147,8 @@ class WorldModel(nn.Module):
 
     def q(self, z: jax.Array, action: jax.Array, deterministic: bool = True) -> jax.Array:
         """Q logits of every head (num_q, ..., num_bins); dropout is active when not ``deterministic``."""
-        return self.q_heads(jnp.concatenate([z, action], axis=-1), deterministic)
+        x = jnp.concatenate([z, action], axis=-1)
+        return self.q_heads(jnp.broadcast_to(x, (self.config.num_q, *x.shape)), deterministic)
 
     def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
         """Touches every component (used by ``init``)."""
