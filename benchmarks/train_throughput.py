@@ -7,7 +7,7 @@ For each task and number of seeds (vmap), times with compile excluded (medians o
   arithmetic by XLA's cost analysis and ``update_tflop_per_s`` the rate achieved; ``update_compile_s`` the
   seconds to lower and compile it (``--update-only`` stops here);
 * ``chunk_env_steps_per_s``: a training chunk of ``--chunk`` iterations (act -> env step -> insert -> update),
-  environment steps per second summed over seeds;
+  environment steps per second summed over seeds (``--chunk-only`` times nothing else: one compilation);
 * with ``--in-scan N``: ``update_in_scan_ms`` (and, unless ``--update-only``, ``act_in_scan_ms`` and
   ``env_in_scan_ms``): the cost of one call when N of them run inside one ``lax.scan``, as the training chunk
   runs them (the update: ``TrainingLoop.update_burst``). A standalone call also pays for its dispatch and
@@ -20,6 +20,7 @@ Writes JSON (device, versions, config, results), rewritten after each measuremen
     python benchmarks/train_throughput.py --small --tasks cartpole-balance --seeds 1,2 --chunk 20   # CPU check
     python benchmarks/train_throughput.py --tasks walker-run --seeds 4 --skip-chunk --matmul-precision bfloat16
     python benchmarks/train_throughput.py --tasks walker-run --agent cfc-zp-det --seeds 3 --envs 16 --in-scan 16
+    python benchmarks/train_throughput.py --tasks walker-run --agent cfc-zp-det --seeds 1 --envs 16 --chunk-only
 """
 
 from __future__ import annotations
@@ -122,6 +123,9 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     ts = filled_state(loop, seeds, args.fill)
     act_dim = loop.env.action_size
     record = {"task": task, "agent": args.agent, "seeds": seeds, "envs": envs}
+    if args.chunk_only:  # one compilation (the chunk's) instead of four
+        record.update(time_chunk(loop, ts, seeds, envs, args.chunk, args.repeats))
+        return record
     update_start = time.perf_counter()
     update, update_args = update_call(loop, ts)  # timed and cost-analysed
     record["update_compile_s"] = time.perf_counter() - update_start  # lowering + XLA compilation
@@ -151,20 +155,22 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
     env_step = jax.jit(env_step_over_seeds_and_envs(loop))
     actions = jnp.zeros((seeds, envs, act_dim))
     record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
-    if args.skip_chunk:
-        record["parts_ms"] = {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]}
-        return record
-    train = jax.jit(jax.vmap(loop.train_chunk, in_axes=(0, None)), static_argnums=1)
-    chunk_t = time_call(train, ts, args.chunk, repeats=max(1, args.repeats // 3))
-    env_steps = seeds * args.chunk * envs * loop.env.action_repeat
-    record.update({
-        "chunk_iterations": args.chunk, "chunk_s": chunk_t["median_s"],
-        "chunk_env_steps_per_s": env_steps / chunk_t["median_s"],
-        "ms_per_iteration": 1e3 * chunk_t["median_s"] / args.chunk, "compile_chunk_s": chunk_t["first_call_s"],
-        # Where an iteration's time goes if the parts ran back to back (act, env step, envs x update).
-        "parts_ms": {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]},
-    })
+    # Where an iteration's time goes if the parts ran back to back (act, env step, envs x update).
+    record["parts_ms"] = {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]}
+    if not args.skip_chunk:
+        record.update(time_chunk(loop, ts, seeds, envs, args.chunk, max(1, args.repeats // 3)))
     return record
+
+
+def time_chunk(loop: TrainingLoop, ts, seeds: int, envs: int, iterations: int, repeats: int) -> dict:
+    """The training chunk of ``iterations`` (act -> env step -> insert -> update) over every seed: its median
+    seconds, environment steps per second summed over seeds, ms per iteration and first call (compilation)."""
+    train = jax.jit(jax.vmap(loop.train_chunk, in_axes=(0, None)), static_argnums=1)
+    chunk_t = time_call(train, ts, iterations, repeats=repeats)
+    env_steps = seeds * iterations * envs * loop.env.action_repeat
+    return {"chunk_iterations": iterations, "chunk_s": chunk_t["median_s"],
+            "chunk_env_steps_per_s": env_steps / chunk_t["median_s"],
+            "ms_per_iteration": 1e3 * chunk_t["median_s"] / iterations, "compile_chunk_s": chunk_t["first_call_s"]}
 
 
 def main(argv=None):
@@ -181,6 +187,8 @@ def main(argv=None):
                         help="time act, env step and update only (no end-to-end chunk: saves its compilation)")
     parser.add_argument("--update-only", action="store_true",
                         help="time the update alone (no act step, env step or chunk)")
+    parser.add_argument("--chunk-only", action="store_true",
+                        help="time the training chunk alone, --repeats times (no standalone act, env step or update)")
     parser.add_argument("--in-scan", type=int, default=0, metavar="N",
                         help="also time act, env step and update N at a time inside one lax.scan (0: off)")
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
@@ -192,6 +200,10 @@ def main(argv=None):
     args = parser.parse_args(argv)
     if args.in_scan < 0:
         parser.error(f"--in-scan must be >= 0 (0: off), got {args.in_scan}")
+    if args.chunk_only and (args.update_only or args.skip_chunk or args.in_scan):
+        parser.error("--chunk-only times the chunk alone: drop --update-only, --skip-chunk and --in-scan")
+    if args.chunk < 1:
+        parser.error(f"--chunk must be >= 1 iteration, got {args.chunk}")
     if args.matmul_precision != "default":
         jax.config.update("jax_default_matmul_precision", args.matmul_precision)
     out = args.out or default_out("train_throughput")
@@ -201,6 +213,11 @@ def main(argv=None):
             record = measure(task, seeds, envs, args)
             payload["results"].append(record)
             out = write_json(out, payload)
+            if args.chunk_only:
+                print(f"{task:18s} {args.agent:12s} seeds={seeds:2d} envs={envs:2d}  chunk "
+                      f"{record['ms_per_iteration']:8.2f} ms/iteration  {record['chunk_env_steps_per_s']:10.0f} env "
+                      f"steps/s (compiled in {record['compile_chunk_s']:.1f} s)", flush=True)
+                continue
             if args.update_only:
                 in_scan = (f", {record['update_in_scan_ms']:.2f} ms in a scan of {args.in_scan}"
                            if args.in_scan else "")

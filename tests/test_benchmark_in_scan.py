@@ -50,3 +50,16 @@ def test_profile_call_reports_figures_per_unit_of_a_burst():
     summary = pu.profile_call(fn, (jnp.ones((16, 16)),), calls=2, warmup=1, top=3, per_call=4)
     assert summary["calls"] == 8
     assert summary["kernels_per_call"] > 0 and summary["wall_ms_per_call"] > 0
+
+
+def test_chunk_only_refuses_the_flags_that_time_other_parts(capsys):
+    import pytest
+    import train_throughput
+
+    for flags in (["--update-only"], ["--skip-chunk"], ["--in-scan", "4"]):
+        with pytest.raises(SystemExit):
+            train_throughput.main(["--small", "--chunk-only", *flags, "--out", os.devnull])
+        assert "--chunk-only times the chunk alone" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train_throughput.main(["--small", "--chunk-only", "--chunk", "0", "--out", os.devnull])
+    assert "--chunk must be >= 1 iteration, got 0" in capsys.readouterr().err
