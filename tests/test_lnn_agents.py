@@ -65,6 +65,10 @@ def test_overrides_are_converted_validated_and_listed():
         make_agent("cfc-zp-det", OBS, ACT, overrides={"lambda_": 1.5})
     with pytest.raises(ValueError, match=r"cell='gru' is not supported; allowed values: \['cfc', 'ltc'\]"):
         make_agent("cfc-zp-det", OBS, ACT, overrides={"cell": "gru"})
+    with pytest.raises(ValueError, match=r"planner: horizon=0 is invalid; .* \(set by plan_horizon=0\)"):
+        make_agent("cfc-zp-det", OBS, ACT, overrides={"plan_horizon": 0})
+    with pytest.raises(ValueError, match=r"model: .*num_q.* \(set by num_q='1'\)"):
+        make_agent("tdmpc2", OBS, ACT, overrides={"num_q": "1", "lr": 1e-3})
     with pytest.raises(ValueError, match="unknown agent 'cfc-xp-det'"):
         make_agent("cfc-xp-det", OBS, ACT)
     tdmpc2 = make_agent("tdmpc2", OBS, ACT, overrides={"plan_horizon": "4", "horizon": 5, "num_q": 3})

@@ -89,5 +89,10 @@ def apply_overrides(config: Any, overrides: dict[str, Any] | None) -> Any:
             else:
                 nested.setdefault(path[0], {})[path[1]] = converted
     for name, changes in nested.items():
-        top[name] = dataclasses.replace(getattr(config, name), **changes)
+        try:
+            top[name] = dataclasses.replace(getattr(config, name), **changes)
+        except ValueError as error:  # the section names its own field (planner: horizon); say which --set it was
+            keys = [key for key in overrides if any(path[0] == name and len(path) == 2 for path in paths[key])]
+            given = ", ".join(f"{key}={overrides[key]!r}" for key in keys)
+            raise ValueError(f"{name}: {error} (set by {given})") from error
     return dataclasses.replace(config, **top)
