@@ -2,7 +2,7 @@
 
     python -m lnnmpc.train.cli train --task walker-run --seeds 4 --steps 200000 --obs "noise=0.1,flicker=0.2"
     python -m lnnmpc.train.cli train --resume runs/walker-run/tdmpc2/20260101-120000-noise0.1-flicker0.2
-    python -m lnnmpc.train.cli train --task walker-run --set lambda_=0 --check   # validate, print, train nothing
+    python -m lnnmpc.train.cli train --task walker-run --agent cfc-zp-det --set lambda_=0 --check  # print only
     python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control]
     python -m lnnmpc.train.cli video RUN [--out episode.gif]
     python -m lnnmpc.train.cli report RUN            # redraw curve.png and summary.md
@@ -30,7 +30,7 @@ def _train_parser(sub) -> None:
     p = sub.add_parser("train", help="train (or resume) a run", argument_default=argparse.SUPPRESS,
                        description="Train an agent on one task for several seeds at once; write a run folder.")
     p.add_argument("--task", help=f"one of: {', '.join(envs.TASKS)}")
-    p.add_argument("--agent", help=f"one of: {', '.join(AGENTS)} (default tdmpc2)")
+    p.add_argument("--agent", help=f"one of: {', '.join(AGENTS)} (default tdmpc2; `make train` defaults to cfc-zp-det)")
     p.add_argument("--seeds", type=int, help="independent seeds trained together (default 1)")
     p.add_argument("--steps", type=int, help="environment steps per seed (default 200000)")
     p.add_argument("--envs", type=int, help="environments per seed (default 1)")
