@@ -98,3 +98,17 @@ def test_compare_metric_panels_median_and_range_over_seeds(tmp_path, capsys):
         ("cfc-zp-det", "value_loss", "5000", 0.8, "1"), ("cfc-zp-det", "prediction_loss", "5000", 3e-4, "1")]
     assert main([a, "--metrics", "nope", "--out", out]) == 2
     assert "no run logs metric 'nope'" in capsys.readouterr().err
+
+
+def test_summary_names_each_seed_final_against_its_own_best():
+    from lnnmpc.train.report import eval_table, seed_finals
+
+    returns = {(100, 0): [500.0, 520.0], (100, 1): [800.0, 810.0], (200, 0): [700.0, 700.0], (200, 1): [300.0, 310.0]}
+    rows = [{"env_step": str(step), "seed": str(seed), "episode": str(i), "return": str(value)}
+            for (step, seed), values in returns.items() for i, value in enumerate(values)]
+    table = eval_table(rows)
+    assert [t["per_seed"] for t in table] == [{0: 510.0, 1: 805.0}, {0: 700.0, 1: 305.0}]
+    assert seed_finals(table) == ("Per seed at the last evaluation: seed 0 700.0 (its best 700.0 at 200), "
+                                  "seed 1 305.0 (its best 805.0 at 100).")
+    assert seed_finals(eval_table([r for r in rows if r["seed"] == "0"])) is None  # one seed: the mean says it
+    assert seed_finals([]) is None

@@ -111,6 +111,8 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     recent = [np.mean([seed_mean(step, seed) for seed in (0, 1)]) for step in steps[-3:]]
     assert (f"Mean of the last 3 evaluations {np.mean(recent):.1f} (from {min(recent):.1f} to {max(recent):.1f})"
             in summary)
+    finals = [f"seed {seed} {seed_mean(steps[-1], seed):.1f} (its best " for seed in (0, 1)]
+    assert all(text in summary for text in finals) and "Per seed at the last evaluation: " in summary
     assert summary.count("\n") < 40  # one screen
     assert (reference / "curve.png").stat().st_size > 10_000
     assert (reference / "training.png").stat().st_size > 10_000

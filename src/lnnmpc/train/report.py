@@ -48,7 +48,7 @@ class Progress:
 
 def eval_table(rows: list[dict]) -> list[dict]:
     """Per evaluation step: mean and std of the return over seeds (of each seed's episode mean; over episodes
-    when there is one seed), min/max over all episodes, and the number of seeds."""
+    when there is one seed), min/max over all episodes, the number of seeds and ``per_seed`` ({seed: mean})."""
     table = []
     for step in sorted({int(r["env_step"]) for r in rows}):
         at = [r for r in rows if int(r["env_step"]) == step]
@@ -57,8 +57,21 @@ def eval_table(rows: list[dict]) -> list[dict]:
         returns = [float(r["return"]) for r in at]
         spread = per_seed if len(seeds) > 1 else returns
         table.append({"env_step": step, "mean": float(np.mean(per_seed)), "std": float(np.std(spread)),
-                      "min": min(returns), "max": max(returns), "seeds": len(seeds)})
+                      "min": min(returns), "max": max(returns), "seeds": len(seeds),
+                      "per_seed": dict(zip(seeds, map(float, per_seed), strict=True))})
     return table
+
+
+def seed_finals(table: list[dict]) -> str | None:
+    """One line: each seed's mean at the last evaluation beside its own best evaluation, so that one seed falling
+    at the end (and pulling the mean down) stands out; None for a single seed or no evaluation."""
+    if not table or table[-1]["seeds"] < 2:
+        return None
+    parts = []
+    for seed, value in table[-1]["per_seed"].items():
+        best = max((t for t in table if seed in t["per_seed"]), key=lambda t: t["per_seed"][seed])
+        parts.append(f"seed {seed} {value:.1f} (its best {best['per_seed'][seed]:.1f} at {best['env_step']:,})")
+    return "Per seed at the last evaluation: " + ", ".join(parts) + "."
 
 
 def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str) -> None:
@@ -193,6 +206,8 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
         last, best = table[-1], max(table, key=lambda t: t["mean"])
         lines += [f"**Final return {last['mean']:.1f} ± {last['std']:.1f}** at {last['env_step']:,} env steps "
                   f"(best {best['mean']:.1f} at {best['env_step']:,}).", ""]
+        if seed_finals(table):
+            lines += [seed_finals(table), ""]
         if len(table) >= LAST_EVALUATIONS:
             recent = [t["mean"] for t in table[-LAST_EVALUATIONS:]]
             lines += [f"Mean of the last {LAST_EVALUATIONS} evaluations {np.mean(recent):.1f} (from "
