@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install train eval video report compare test lint fmt bench bench-env bench-cells clean
+.PHONY: install train eval video report compare tables test lint fmt bench bench-env bench-cells clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -63,6 +63,11 @@ METRICS ?=
 compare: $(STAMP)
 	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS)) \
 		$(if $(METRICS),--metrics $(METRICS))
+
+# make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"]
+#   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means) and the speed
+tables: $(STAMP)
+	$(PY) -m lnnmpc.train.tables $(RUNS) $(if $(LABELS),--labels $(LABELS))
 
 # make experiment NAME=table5_3 [ARGS="--seeds 3 --agents tdmpc2,cfc-zp-det --steps 200000 --dry-run"]
 #   trains (resumes) the study's grid, evaluates it and writes experiments/results/studies/NAME.{csv,md}

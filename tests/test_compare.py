@@ -112,3 +112,31 @@ def test_summary_names_each_seed_final_against_its_own_best():
                                   "seed 1 305.0 (its best 805.0 at 100).")
     assert seed_finals(eval_table([r for r in rows if r["seed"] == "0"])) is None  # one seed: the mean says it
     assert seed_finals([]) is None
+
+
+def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
+    from lnnmpc.train.tables import main as tables_main
+
+    a = _run(tmp_path / "a", "tdmpc2", {10: [[100.0, 300.0], [500.0, 700.0]], 20: [[800.0, 800.0], [600.0, 600.0]],
+                                         30: [[900.0, 910.0], [700.0, 690.0]]}, seeds=2)
+    b = _run(tmp_path / "b", "cfc-zp-det", {20: [[50.0]]})
+    timing = [{"env_step": 0, "phase": "compile", "seconds": 100.0, "env_steps_per_seed": 0,
+               "env_steps_per_s_all_seeds": 0.0}]
+    timing += [{"env_step": 10 * k, "phase": "train_chunk", "seconds": s, "env_steps_per_seed": 10,
+                "env_steps_per_s_all_seeds": r} for k, s, r in ((1, 5.0, 400.0), (2, 6.0, 300.0), (3, 7.0, 200.0))]
+    timing += [{"env_step": 30, "phase": "evaluate", "seconds": 3.5, "env_steps_per_seed": 0,
+                "env_steps_per_s_all_seeds": 0.0}]
+    runfolder.write_csv(os.path.join(a, "timing.csv"), list(timing[0]), timing)
+    assert tables_main([a, b, "--labels", "A", "B", "--returns-only"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("| env steps | A: mean ± std | A: over seeds | A: seeds | B: mean ± std")
+    # step 10: episodes 100, 300, 500, 700 (std 223.6), seed means 200 / 600 (std 200); B has no evaluation there
+    assert lines[2] == "| 10 | 400.0 ± 223.6 | 200.0 | 200 / 600 |  |  |  |"
+    assert lines[3] == "| 20 | 700.0 ± 100.0 | 100.0 | 800 / 600 | 50.0 ± 0.0 | 0.0 | 50 |"
+    assert lines[-1] == "| mean of the last 3 | 633.3 |  |  |  |  |  |"  # (400 + 700 + 800) / 3; B has one
+    assert tables_main([a, "--labels", "A", "--speed-only"]) == 0
+    row = capsys.readouterr().out.splitlines()[-1]
+    # median chunk 300 env steps/s over 2 seeds; everything logged 100 + 18 + 3.5 s
+    assert row == "| A | 100.0 | 18.0 (3 × 10 steps) | 300 | 150 | 3.5 (1) | 122 |"
+    assert tables_main([b, "--speed-only"]) == 2
+    assert "has no timing.csv" in capsys.readouterr().err

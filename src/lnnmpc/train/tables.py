@@ -1,0 +1,110 @@
+"""``python -m lnnmpc.train.tables RUN [RUN ...]``: markdown tables of several runs, to paste into a results page.
+
+    python -m lnnmpc.train.tables runs/a runs/b --labels "H_plan 10" "H_plan 3"
+    python -m lnnmpc.train.tables runs/a --speed-only
+
+Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds ×
+episodes, the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations.
+A run that has no evaluation at a step another run has gets an empty cell. Speed (from each ``timing.csv``, wall
+seconds): compilation, training chunks (total, count, environment steps per chunk per seed), the median chunk's
+environment steps per second over all seeds and per seed, evaluations (total, count) and everything logged.
+These are the tables the READMEs under ``experiments/results/`` quote.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+from lnnmpc.train import runfolder
+from lnnmpc.train.compare import load_curves
+from lnnmpc.train.config import ConfigError, command_status
+from lnnmpc.train.report import LAST_EVALUATIONS
+
+
+def episode_stats(rows: list[dict]) -> dict[int, dict]:
+    """Per evaluation step of ``eval.csv`` rows: {"mean", "std" (over all seeds × episodes), "seed_std" (over the
+    seeds' means), "seed_means" (by seed order)}."""
+    stats = {}
+    for step in sorted({int(r["env_step"]) for r in rows}):
+        at = [r for r in rows if int(r["env_step"]) == step]
+        seeds = sorted({int(r["seed"]) for r in at})
+        means = [float(np.mean([float(r["return"]) for r in at if int(r["seed"]) == s])) for s in seeds]
+        returns = [float(r["return"]) for r in at]
+        stats[step] = {"mean": float(np.mean(returns)), "std": float(np.std(returns)),
+                       "seed_std": float(np.std(means)), "seed_means": means}
+    return stats
+
+
+def returns_table(runs: list[str], labels: list[str]) -> str:
+    """The markdown table of the runs' evaluations, one row per step any run evaluated at."""
+    stats = [episode_stats(runfolder.read_csv(os.path.join(run, "eval.csv"))) for run in runs]
+    header = ["env steps"] + [f"{label}: {part}" for label in labels for part in ("mean ± std", "over seeds", "seeds")]
+    lines = ["| " + " | ".join(header) + " |", "|---:" + "|---:|---:|---" * len(runs) + "|"]
+    for step in sorted(set().union(*stats)):
+        cells = [f"{step:,}"]
+        for run_stats in stats:
+            s = run_stats.get(step)
+            cells += ([f"{s['mean']:.1f} ± {s['std']:.1f}", f"{s['seed_std']:.1f}",
+                       " / ".join(f"{m:.0f}" for m in s["seed_means"])] if s else ["", "", ""])
+        lines.append("| " + " | ".join(cells) + " |")
+    last = ["mean of the last 3"]
+    for run_stats in stats:
+        recent = [run_stats[step]["mean"] for step in sorted(run_stats)[-LAST_EVALUATIONS:]]
+        last += [f"{np.mean(recent):.1f}" if len(recent) == LAST_EVALUATIONS else "", "", ""]
+    lines.append("| " + " | ".join(last) + " |")
+    return "\n".join(lines)
+
+
+def speed_row(run: str, seeds: int) -> dict:
+    """Wall seconds of one run's phases from its ``timing.csv`` (see the module docstring)."""
+    path = os.path.join(run, "timing.csv")
+    if not os.path.exists(path):
+        raise ConfigError(f"{run!r} has no timing.csv (runs before the trainer wrote one cannot give their speed)")
+    rows = runfolder.read_csv(path)
+    seconds = lambda phase: [float(r["seconds"]) for r in rows if r["phase"] == phase]  # noqa: E731
+    chunks = [r for r in rows if r["phase"] == "train_chunk"]
+    rate = float(np.median([float(r["env_steps_per_s_all_seeds"]) for r in chunks])) if chunks else float("nan")
+    return {"compile_s": sum(seconds("compile")), "chunks_s": sum(seconds("train_chunk")), "chunks": len(chunks),
+            "chunk_steps": int(chunks[0]["env_steps_per_seed"]) if chunks else 0, "steps_per_s": rate,
+            "steps_per_s_per_seed": rate / seeds, "evaluations_s": sum(seconds("evaluate")),
+            "evaluations": len(seconds("evaluate")), "all_s": sum(float(r["seconds"]) for r in rows)}
+
+
+def speed_table(runs: list[str], labels: list[str]) -> str:
+    """The markdown table of the runs' speeds (one row per run)."""
+    lines = ["| run | compile s | training chunks s | env steps/s, all seeds (median chunk) | per seed | "
+             "evaluations s | all s |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for run, label in zip(runs, labels, strict=True):
+        seeds = runfolder.read_config(run)["config"]["seeds"]
+        s = speed_row(run, seeds)
+        lines.append(f"| {label} | {s['compile_s']:.1f} | {s['chunks_s']:,.1f} ({s['chunks']} × "
+                     f"{s['chunk_steps']:,} steps) | {s['steps_per_s']:.0f} | {s['steps_per_s_per_seed']:.0f} | "
+                     f"{s['evaluations_s']:.1f} ({s['evaluations']}) | {s['all_s']:,.0f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m lnnmpc.train.tables", description=__doc__.split("\n")[0])
+    p.add_argument("runs", nargs="+", help="run folders")
+    p.add_argument("--labels", nargs="+", default=None, help="one label per run (default: agent, corruptions "
+                   "and overrides)")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--returns-only", action="store_true", help="only the evaluation table")
+    which.add_argument("--speed-only", action="store_true", help="only the speed table")
+    args = p.parse_args(argv)
+
+    def tables() -> str:
+        labels = [curve["label"] for curve in load_curves(args.runs, args.labels)]  # checks folders and labels
+        parts = [] if args.speed_only else [returns_table(args.runs, labels)]
+        parts += [] if args.returns_only else [speed_table(args.runs, labels)]
+        return "\n\n".join(parts)
+
+    return command_status(tables)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
