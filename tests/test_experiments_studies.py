@@ -338,7 +338,9 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     table = (work / "experiments" / "results" / "studies" / "table5_5.md").read_text()
     assert "| acrobot-swingup | noise0.1 | noise0.1 | tdmpc2 | 50,000 | 1 × 2 | 20.0 ± 10.0 |" in table
     assert table.count("| cfc-zp-det | not yet run |") == 3 and table.count("not yet run") == 6 * 3 + 2
-    assert "plain run (file it by hand): runs/batch/plain-run" in result.stdout
+    assert "plain run (file it by hand): runs/batch/plain-run, copied to runs/ingested/plain-run" in result.stdout
+    assert (work / "runs" / "ingested" / "plain-run" / "config.json").read_text() == "{}"
+    assert "(no table for plain-run)" in result.stdout  # its config.json is no trainer's: said, not fatal
 
 
 def test_ingest_batch_never_replaces_a_longer_filed_run_with_a_shorter_copy(tmp_path):

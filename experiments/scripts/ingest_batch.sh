@@ -14,12 +14,15 @@
 # - each study of the batch (its commands.txt) is aggregated again over study-runs/ into
 #   experiments/results/studies/<study>.{csv,md}: the whole table, every agent of the study (the line's --agents
 #   dropped), measured cells from whatever study-runs/ holds, "not yet run" elsewhere;
-# - the batch's plain training runs (runs/batch/<name>/) are listed, to be filed by hand with a README.
+# - the batch's plain training runs (runs/batch/<name>/) are listed and copied to $STAGING (default
+#   runs/ingested/<name>, git-ignored), to be filed by hand with a README; their tables (`lnnmpc.train.tables`:
+#   every evaluation and the speed) are printed for it.
 # $PYTHON picks the interpreter (default .venv/bin/python). Commit what it wrote right after.
 set -eu
 tarball=${1:?usage: ingest_batch.sh RESULTS_TAR_GZ}
 python=${PYTHON:-.venv/bin/python}
 runs=experiments/results/study-runs
+staging=${STAGING:-runs/ingested}
 tmp=$(mktemp -d)
 last_env_step() {  # RUN_DIR: the last env_step its eval.csv logged (0 without evaluations)
     if [ -f "$1/eval.csv" ]; then
@@ -64,9 +67,23 @@ if [ -f "$tmp/commands.txt" ]; then
             --out experiments/results/studies 2>&1 | grep -v warp || true
     done
 fi
+plain=() names=()
 for run in "$tmp"/*/; do
     name=$(basename "$run")
     if [ "$name" != experiments ] && [ "$name" != studies ] && [ -f "$run/config.json" ]; then
-        echo "plain run (file it by hand): runs/batch/$name"
+        mkdir -p "$staging"
+        rm -rf "${staging:?}/$name"
+        cp -r "$run" "$staging/$name"
+        echo "plain run (file it by hand): runs/batch/$name, copied to $staging/$name"
+        plain+=("$staging/$name") names+=("$name")
     fi
 done
+if [ ${#plain[@]} -gt 0 ]; then  # the tables its README will quote: each run's evaluations, then all speeds
+    for i in "${!plain[@]}"; do
+        echo
+        "$python" -m lnnmpc.train.tables "${plain[$i]}" --labels "${names[$i]}" --returns-only \
+            || echo "(no table for ${names[$i]})"
+    done
+    echo
+    "$python" -m lnnmpc.train.tables "${plain[@]}" --labels "${names[@]}" --speed-only || echo "(no speed table)"
+fi
