@@ -215,7 +215,7 @@ def test_device_batch_check_validates_every_job_line(tmp_path):
     lines = result.stdout.splitlines()
     assert lines[0] == "ok      study-ok"
     assert lines[1].startswith("FAILED  train-bad: error: unknown hyperparameter 'lamda'")
-    assert lines[2] == "FAILED  pin-bad@x: bad GPU 'x' in job name 'pin-bad@x': give <name>@<number>"
+    assert lines[2] == "FAILED  pin-bad@x: bad GPU 'x' in job name 'pin-bad@x': give <name>@<number> or <name>@all"
     assert sorted(os.listdir(tmp_path)) == ["jobs.txt"]  # nothing written beside it
 
 
@@ -253,6 +253,16 @@ def test_device_batch_start_places_pinned_and_round_robin_jobs(tmp_path):
                             timeout=120, env=env, cwd=tmp_path)
     assert result.returncode == 2 and "bad GPU 'one' in job name 'a@one'" in result.stderr
     assert len((batch / "commands.txt").read_text().splitlines()) == 4  # nothing launched
+    jobs.write_text("sharded@all  --task cartpole-balance --seeds 2 --devices 2\n")  # one job, every GPU
+    result = subprocess.run(["bash", script, "start", str(jobs), "60", "20"], capture_output=True, text=True,
+                            timeout=120, env=env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert (batch / "sharded.log").read_text().strip() == "gpu=0,1 mem=0.9"
+    assert (batch / "commands.txt").read_text().splitlines()[-1].startswith("sharded (GPU all): --task")
+    jobs.write_text("sharded@all  --task cartpole-balance\nother  --task cartpole-balance\n")
+    result = subprocess.run(["bash", script, "start", str(jobs), "60", "20"], capture_output=True, text=True,
+                            timeout=120, env=env, cwd=tmp_path)
+    assert result.returncode == 2 and "a <name>@all job uses every GPU: give it a jobs file of its own" in result.stderr
 
 
 def test_device_batch_after_runs_a_command_once_its_job_has_ended(tmp_path):

@@ -24,7 +24,8 @@
 # nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
 # On a machine of several GPUs each job gets one GPU (CUDA_VISIBLE_DEVICES): "<name>@<k>" pins a line to GPU k
 # (k mod the machine's count, so a two-GPU file still runs on one GPU), the other lines are dealt out round robin
-# (the i-th line on GPU i mod count). Independent runs gain the most from more GPUs, since one run's step is
+# (the i-th line on GPU i mod count). "<name>@all" gives one job every GPU (e.g. `train --devices 4`, the seeds
+# sharded over them); such a job must be the only line of its file. Independent runs gain the most from more GPUs, since one run's step is
 # latency-bound. The jobs on one GPU share it through CUDA MPS when the machine has it (MPS=0 turns that off);
 # each process takes MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
 set -u
@@ -36,12 +37,14 @@ job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines
     grep -v -E '^\s*(#|$)' "$1"
 }
 
-# "NAME@K" -> "NAME K"; a plain NAME -> "NAME" (no GPU asked for); exit 1 for a GPU that is no number
-split_name() {  # NAME[@K]
+# "NAME@K" -> "NAME K", "NAME@all" -> "NAME all"; a plain NAME -> "NAME" (no GPU asked for); exit 1 for a GPU
+# that is no number
+split_name() {  # NAME[@K|@all]
     case $1 in
     *@*)
         local gpu=${1##*@}
-        [[ $gpu =~ ^[0-9]+$ ]] || { echo "bad GPU '$gpu' in job name '$1': give <name>@<number>" >&2; return 1; }
+        [[ $gpu =~ ^([0-9]+|all)$ ]] || { echo "bad GPU '$gpu' in job name '$1': give <name>@<number> or"\
+            "<name>@all" >&2; return 1; }
         echo "${1%@*} $gpu" ;;
     *) echo "$1" ;;
     esac
@@ -53,9 +56,23 @@ place_jobs() {  # JOBS COUNT
     local index=0 name gpu args
     while read -r name args; do
         read -r name gpu < <(split_name "$name") || return 1
-        echo "$name $(((${gpu:-$index}) % $2))"
+        if [ "$gpu" = all ]; then
+            echo "$name all"
+        else
+            echo "$name $(((${gpu:-$index}) % $2))"
+        fi
         index=$((index + 1))
     done < <(job_lines "$1")
+}
+
+# Exit 1 (with the reason) when a "@all" job shares its file with other jobs: it would share every GPU with them.
+all_alone() {  # JOBS
+    local names
+    names=$(job_lines "$1" | awk '{print $1}')
+    if echo "$names" | grep -q '@all$' && [ "$(echo "$names" | wc -l)" -gt 1 ]; then
+        echo "a <name>@all job uses every GPU: give it a jobs file of its own" >&2
+        return 1
+    fi
 }
 
 # The command of one job line "NAME ARGS", its outputs under DIR: a study for "experiment ..." lines (STUDY_EXTRA
@@ -97,6 +114,7 @@ start)
     count=$(job_lines "$jobs" | wc -l)
     gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
     [ "${gpus:-0}" -ge 1 ] || gpus=1
+    all_alone "$jobs" || exit 2
     placement=$(place_jobs "$jobs" "$gpus") || exit 2
     per_gpu=$(echo "$placement" | awk '{print $2}' | sort | uniq -c | sort -rn | awk 'NR == 1 {print $1}')
     echo "$count jobs on $gpus GPU(s), up to $per_gpu per GPU" | tee "$BATCH/gpus.txt"
@@ -124,7 +142,9 @@ start)
             command="timeout -s TERM $seconds $command"
         fi
         command="$command; echo \$? >$BATCH/$name.rc"  # the job's end, for `after`
-        CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "$command" >"$BATCH/$name.log" 2>&1 </dev/null &
+        visible=$gpu
+        [ "$gpu" = all ] && visible=$(seq -s, 0 $((gpus - 1)))
+        CUDA_VISIBLE_DEVICES=$visible setsid nohup bash -c "$command" >"$BATCH/$name.log" 2>&1 </dev/null &
         echo "$name (GPU $gpu): $args" | tee -a "$BATCH/commands.txt"
     done
     report_after "$report"
@@ -155,6 +175,7 @@ check)
     jobs=${1:?JOBS file}
     scratch=$(mktemp -d)
     failed=0
+    all_alone "$jobs" || failed=1
     while read -r name args; do
         if ! split=$(split_name "$name" 2>&1); then
             echo "FAILED  $name: $split"
