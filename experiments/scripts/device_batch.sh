@@ -25,8 +25,8 @@
 # On a machine of several GPUs each job gets one GPU (CUDA_VISIBLE_DEVICES): "<name>@<k>" pins a line to GPU k
 # (k mod the machine's count, so a two-GPU file still runs on one GPU), the other lines are dealt out round robin
 # (the i-th line on GPU i mod count). "<name>@all" gives one job every GPU (e.g. `train --devices 4`, the seeds
-# sharded over them); such a job must be the only line of its file. Independent runs gain the most from more GPUs, since one run's step is
-# latency-bound. The jobs on one GPU share it through CUDA MPS when the machine has it (MPS=0 turns that off);
+# sharded over them); such a job must be the only line of its file. Independent runs gain the most from more
+# GPUs, since one run's step is latency-bound. The jobs on one GPU share it through CUDA MPS when the machine has it (MPS=0 turns that off);
 # each process takes MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
 set -u
 BATCH=runs/batch

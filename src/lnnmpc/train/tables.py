@@ -22,20 +22,18 @@ import numpy as np
 from lnnmpc.train import runfolder
 from lnnmpc.train.compare import load_curves
 from lnnmpc.train.config import ConfigError, command_status
-from lnnmpc.train.report import LAST_EVALUATIONS
+from lnnmpc.train.report import LAST_EVALUATIONS, eval_table
 
 
 def episode_stats(rows: list[dict]) -> dict[int, dict]:
     """Per evaluation step of ``eval.csv`` rows: {"mean", "std" (over all seeds × episodes), "seed_std" (over the
-    seeds' means), "seed_means" (by seed order)}."""
+    seeds' means), "seed_means" (by seed order, from :func:`eval_table`)}."""
     stats = {}
-    for step in sorted({int(r["env_step"]) for r in rows}):
-        at = [r for r in rows if int(r["env_step"]) == step]
-        seeds = sorted({int(r["seed"]) for r in at})
-        means = [float(np.mean([float(r["return"]) for r in at if int(r["seed"]) == s])) for s in seeds]
-        returns = [float(r["return"]) for r in at]
-        stats[step] = {"mean": float(np.mean(returns)), "std": float(np.std(returns)),
-                       "seed_std": float(np.std(means)), "seed_means": means}
+    for entry in eval_table(rows):
+        returns = [float(r["return"]) for r in rows if int(r["env_step"]) == entry["env_step"]]
+        means = list(entry["per_seed"].values())
+        stats[entry["env_step"]] = {"mean": float(np.mean(returns)), "std": float(np.std(returns)),
+                                    "seed_std": float(np.std(means)), "seed_means": means}
     return stats
 
 
