@@ -206,8 +206,9 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
         last, best = table[-1], max(table, key=lambda t: t["mean"])
         lines += [f"**Final return {last['mean']:.1f} ± {last['std']:.1f}** at {last['env_step']:,} env steps "
                   f"(best {best['mean']:.1f} at {best['env_step']:,}).", ""]
-        if seed_finals(table):
-            lines += [seed_finals(table), ""]
+        per_seed = seed_finals(table)
+        if per_seed:
+            lines += [per_seed, ""]
         if len(table) >= LAST_EVALUATIONS:
             recent = [t["mean"] for t in table[-LAST_EVALUATIONS:]]
             lines += [f"Mean of the last {LAST_EVALUATIONS} evaluations {np.mean(recent):.1f} (from "
