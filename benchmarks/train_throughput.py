@@ -43,12 +43,13 @@ from lnnmpc.train.config import parse_overrides  # noqa: E402
 from lnnmpc.train.loop import LoopConfig, TrainingLoop  # noqa: E402
 
 
-def build_loop(task: str, agent: str, envs: int, small: bool, overrides: dict | None = None) -> TrainingLoop:
-    """The trainer's loop with default settings (replay sized for 100K environment steps), agent ``overrides``
-    as ``--set`` gives them."""
+def build_loop(task: str, agent: str, envs: int, small: bool, overrides: dict | None = None,
+               batch_size: int = 256) -> TrainingLoop:
+    """The trainer's loop with default settings (replay sized for 100K environment steps, ``batch_size``
+    sequences per update), agent ``overrides`` as ``--set`` gives them."""
     env = envs_lib.make(task)
     agent = make_agent(agent, env.observation_size, env.action_size, small=small, overrides=overrides or {})
-    return TrainingLoop(agent, env, env, LoopConfig(num_envs=envs, replay_capacity=51_000))
+    return TrainingLoop(agent, env, env, LoopConfig(num_envs=envs, batch_size=batch_size, replay_capacity=51_000))
 
 
 def filled_state(loop: TrainingLoop, seeds: int, fill: int):

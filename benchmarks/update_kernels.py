@@ -9,7 +9,7 @@ kernel count, since the update is latency-bound; see benchmarks/results/README.m
   named scope (``profile_update.SCOPES``).
 
     python benchmarks/update_kernels.py [--task walker-run] [--out results/<file>.json]
-    python benchmarks/update_kernels.py --agent cfc-zp-det --loop-seeds 3 --out results/<file>.json
+    python benchmarks/update_kernels.py --agent cfc-zp-det --loop-seeds 3 [--batch-size 128] --out results/<file>.json
 """
 
 import argparse
@@ -68,9 +68,10 @@ def launched_ops(hlo_text: str) -> dict:
     return {"ops": sum(kinds.values()), "by_kind": dict(kinds.most_common()), "by_scope": dict(scopes.most_common())}
 
 
-def loop_update_ops(task: str, agent: str, seeds: int, overrides: dict) -> dict:
-    """:func:`launched_ops` of the trainer's update of ``seeds`` seeds (vmap), with XLA's GFLOP count."""
-    loop = build_loop(task, agent, 1, False, task_default_overrides(agent, task, overrides))
+def loop_update_ops(task: str, agent: str, seeds: int, overrides: dict, batch_size: int = 256) -> dict:
+    """:func:`launched_ops` of the trainer's update of ``seeds`` seeds (vmap, ``batch_size`` sequences each),
+    with XLA's GFLOP count."""
+    loop = build_loop(task, agent, 1, False, task_default_overrides(agent, task, overrides), batch_size)
     shapes = jax.eval_shape(jax.vmap(loop.init), jax.random.split(jax.random.key(0), seeds))  # shapes suffice
     compiled = update_call(loop, shapes)[0]
     return {**launched_ops(compiled.as_text()), "gflop": compiled_gflop(compiled)}
@@ -84,14 +85,17 @@ def main() -> None:
                         help="count the trainer's update of this many seeds instead (see the module docstring)")
     parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
                         help="agent hyperparameter override for --loop-seeds, repeatable")
+    parser.add_argument("--batch-size", type=int, default=256, help="sequences per update for --loop-seeds")
     parser.add_argument("--out", default=None,
                         help="JSON file for the counts, with device and versions ({device} becomes h100, cpu, ...)")
     args = parser.parse_args()
     if args.loop_seeds is not None:
         if args.loop_seeds < 1:
             parser.error(f"--loop-seeds must be >= 1, got {args.loop_seeds}")
+        if args.batch_size < 1:
+            parser.error(f"--batch-size must be >= 1, got {args.batch_size}")
         counts = {"loop_update": loop_update_ops(args.task, args.agent, args.loop_seeds,
-                                                 parse_overrides(args.overrides))}
+                                                 parse_overrides(args.overrides), args.batch_size)}
     else:
         env = envs.make(args.task)
         counts = {}

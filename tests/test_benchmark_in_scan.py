@@ -63,3 +63,21 @@ def test_chunk_only_refuses_the_flags_that_time_other_parts(capsys):
     with pytest.raises(SystemExit):
         train_throughput.main(["--small", "--chunk-only", "--chunk", "0", "--out", os.devnull])
     assert "--chunk must be >= 1 iteration, got 0" in capsys.readouterr().err
+
+
+def test_benchmark_loop_takes_the_batch_size_and_update_kernels_refuses_a_bad_one(capsys, monkeypatch):
+    import pytest
+    import update_kernels
+
+    from lnnmpc.replay import replay_sample
+
+    loop = build_loop("cartpole-balance", "tdmpc2", 1, True, {}, batch_size=8)
+    assert loop.config.batch_size == 8
+    ts = jax.eval_shape(loop.init, jax.random.key(0))
+    sample = lambda replay, key: replay_sample(replay, key, loop.config.batch_size, loop.agent.sequence_length)
+    records, _ = jax.eval_shape(sample, ts.replay, jax.random.key(1))
+    assert {leaf.shape[1] for leaf in jax.tree_util.tree_leaves(records)} == {8}  # (sequence, B, ...)
+    monkeypatch.setattr(sys, "argv", ["update_kernels.py", "--loop-seeds", "1", "--batch-size", "0"])
+    with pytest.raises(SystemExit):
+        update_kernels.main()
+    assert "--batch-size must be >= 1, got 0" in capsys.readouterr().err
