@@ -8,20 +8,16 @@ import platform
 import re
 import statistics
 import time
-from importlib import metadata
 
 import jax
+
+from lnnmpc.train.provenance import software_versions
 
 
 def environment_info() -> dict:
     """Device and package versions, recorded in every benchmark JSON."""
     device = jax.devices()[0]
-    versions = {}
-    for package in ("jax", "jaxlib", "flax", "optax", "mujoco", "mujoco-mjx", "dm-control"):
-        try:
-            versions[package] = metadata.version(package)
-        except metadata.PackageNotFoundError:
-            versions[package] = None
+    versions = software_versions(("jax", "jaxlib", "flax", "optax", "mujoco", "mujoco-mjx", "dm-control"))
     return {
         "device": device.device_kind,
         "platform": device.platform,

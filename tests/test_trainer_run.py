@@ -114,6 +114,14 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     finals = [f"seed {seed} {seed_mean(steps[-1], seed):.1f} (its best " for seed in (0, 1)]
     assert all(text in summary for text in finals) and "Per seed at the last evaluation: " in summary
     assert summary.count("\n") < 40  # one screen
+    (start,) = config["provenance"]  # one start: where the run came from
+    assert start["command"].startswith("python -m lnnmpc.train.cli --task cartpole-swingup --small")
+    assert start["command"].endswith(f"--out {reference} --compile-ahead on") and start["argv"][1:] == [
+        *CONFIG, "--out", str(reference), "--compile-ahead", "on"]
+    import jax
+
+    assert start["versions"]["jax"] == jax.__version__ and start["versions"]["mujoco-mjx"]
+    assert f"Started by `{start['command']}`." in summary and "| code | " in summary
     assert (reference / "curve.png").stat().st_size > 10_000
     assert (reference / "training.png").stat().st_size > 10_000
     timing = _rows(reference / "timing.csv")
@@ -151,6 +159,12 @@ def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp
     assert f"resuming {run} at {interrupted:,} env steps" in result.stderr
     assert (run / "eval.csv").read_text() == (reference / "eval.csv").read_text()
     assert (run / "train.csv").read_text() == (reference / "train.csv").read_text()
+    import json
+
+    starts = json.loads((run / "config.json").read_text())["provenance"]  # the start and both resumes
+    assert [entry["command"].endswith(f"train --resume {run}") for entry in starts] == [False, True, True]
+    assert starts[0]["time"] <= starts[1]["time"] <= starts[2]["time"]
+    assert "3 starts (resumed)" in (run / "summary.md").read_text()
 
 
 def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_path, cache):

@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from lnnmpc.train import runfolder
+from lnnmpc.train import provenance, runfolder
 from lnnmpc.train.checkpoint import all_steps
 from lnnmpc.train.references import references
 
@@ -201,7 +201,10 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
              f"| agent | {c['agent']} ({_agent_size(c)}{', small' if c['small'] else ''}"
              f"{', overrides ' + str(c['overrides']) if c['overrides'] else ''}) |",
              f"| physics, envs per seed | {c['physics']}, {c['envs']} |",
-             f"| devices | {config.get('num_devices', 1)} × {(config.get('devices') or ['?'])[0]} |", ""]
+             f"| devices | {config.get('num_devices', 1)} × {(config.get('devices') or ['?'])[0]} |",
+             f"| code | {provenance.code_line(config.get('provenance', []))} |", ""]
+    if config.get("provenance"):
+        lines += [f"Started by `{config['provenance'][-1]['command']}`.", ""]
     if table:
         last, best = table[-1], max(table, key=lambda t: t["mean"])
         lines += [f"**Final return {last['mean']:.1f} ± {last['std']:.1f}** at {last['env_step']:,} env steps "

@@ -68,6 +68,16 @@ def read_config(run: str) -> dict:
     return data
 
 
+def read_provenance(run: str) -> list[dict]:
+    """The ``"provenance"`` entries (:mod:`lnnmpc.train.provenance`) of a run folder's config.json; [] where the
+    folder has no config.json yet or it predates them."""
+    path = os.path.join(run, CONFIG_FILE)
+    if not os.path.isfile(path):
+        return []
+    with open(path) as f:
+        return list(json.load(f).get("provenance", []))
+
+
 def saved_config(run: str, **changes) -> TrainConfig:
     """The TrainConfig stored in a run folder, with ``changes`` applied; ``out`` points at the folder."""
     values = dict(read_config(run)["config"])

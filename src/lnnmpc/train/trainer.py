@@ -39,6 +39,7 @@ from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkp
 from lnnmpc.train.compat import agent_config_json, check_agent_config, check_compatible, check_layout, state_signature
 from lnnmpc.train.config import ConfigError, TrainConfig
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.provenance import provenance_entry
 from lnnmpc.train.sharding import SeedPlacement, compile_ahead, device_count_for
 
 MAX_CHUNK = 1000  # iterations per compiled training chunk
@@ -242,7 +243,8 @@ class _Run:
         runfolder.write_config(self.run, c, {
             "state_signature": self.setup.signature, "agent_config": agent_config_json(self.loop.agent.config),
             "loop": dataclasses.asdict(self.loop.config), "devices": [d.device_kind for d in jax.devices()],
-            "num_devices": self.setup.num_devices, "chunk": self.setup.chunk})
+            "num_devices": self.setup.num_devices, "chunk": self.setup.chunk,
+            "provenance": runfolder.read_provenance(self.run) + [provenance_entry()]})
         keys = jax.random.split(jax.random.key(c.seed), c.seeds)
         self.ts = self.init(self.placement.put(keys))
         self.counters["eval_key"] = _key_list(jax.random.key(c.seed + 10_000))

@@ -1,0 +1,88 @@
+"""Where a run came from: the command, the code and the software, recorded in its config.json.
+
+Every start and every resume of a run appends one entry to ``config.json``'s ``"provenance"`` list, so a run that
+was stopped and resumed on another machine says so:
+
+    {"time": "2026-11-27T13:23:40Z", "command": "python -m lnnmpc.train.cli train --task walker-run ...",
+     "argv": [...], "cwd": "/work/main", "host": "gpu-7", "python": "3.12.3",
+     "git": {"commit": "827c1e3...", "dirty": false}, "versions": {"jax": "0.11.2", ...}}
+
+``git`` is ``{"commit": None, "dirty": None}`` where the code is not in a git checkout (an installed wheel, a
+copied snapshot) or git is missing.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import shlex
+import subprocess
+import sys
+import time
+from importlib import metadata
+
+PACKAGES = ("jax", "jaxlib", "flax", "optax", "chex", "orbax-checkpoint", "mujoco", "mujoco-mjx", "dm-control")
+_PACKAGE_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # .../lnnmpc
+
+
+def software_versions(packages: tuple[str, ...] = PACKAGES) -> dict[str, str | None]:
+    """Installed version of each package (None where it is not installed)."""
+    versions = {}
+    for package in packages:
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = None
+    return versions
+
+
+def git_state(path: str = _PACKAGE_ROOT) -> dict[str, str | bool | None]:
+    """``{"commit": HEAD's hash, "dirty": whether tracked files differ from it}`` of the checkout holding
+    ``path``; both None outside a git checkout or without git."""
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(["git", "-C", path, *args], capture_output=True, text=True, timeout=10)
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    if not commit:
+        return {"commit": None, "dirty": None}
+    status = git("status", "--porcelain", "--untracked-files=no")
+    return {"commit": commit, "dirty": None if status is None else bool(status)}
+
+
+def command_line(argv: list[str]) -> str:
+    """``argv`` as a shell command; a script inside the lnnmpc package becomes ``python -m lnnmpc.<module>``."""
+    if not argv:
+        return ""
+    script = os.path.abspath(argv[0])
+    if script.startswith(_PACKAGE_ROOT + os.sep) and script.endswith(".py"):
+        relative = os.path.relpath(script[:-3], os.path.dirname(_PACKAGE_ROOT))
+        head = ["python", "-m", relative.replace(os.sep, ".").removesuffix(".__main__")]
+    else:
+        head = [argv[0]]
+    return shlex.join(head + list(argv[1:]))
+
+
+def provenance_entry(argv: list[str] | None = None) -> dict:
+    """One entry of the ``"provenance"`` list for a start (or resume) now, by ``argv`` (default ``sys.argv``)."""
+    argv = list(sys.argv if argv is None else argv)
+    return {"time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": command_line(argv),
+            "argv": argv, "cwd": os.getcwd(), "host": platform.node(), "python": platform.python_version(),
+            "git": git_state(), "versions": software_versions()}
+
+
+def code_line(entries: list[dict]) -> str:
+    """Summary of the newest entry for summary.md: ``827c1e3d0a12 (uncommitted changes); jax 0.11.2, ...``."""
+    if not entries:
+        return "not recorded"
+    latest = entries[-1]
+    git = latest.get("git") or {}
+    code = (git["commit"][:12] + (" (uncommitted changes)" if git.get("dirty") else "")
+            if git.get("commit") else "not a git checkout")
+    versions = latest.get("versions") or {}
+    shown = ", ".join(f"{name} {versions[name]}" for name in ("jax", "mujoco-mjx") if versions.get(name))
+    starts = f"; {len(entries)} starts (resumed)" if len(entries) > 1 else ""
+    return code + (f"; {shown}" if shown else "") + starts

@@ -1,0 +1,61 @@
+"""A run's provenance (lnnmpc.train.provenance): the git state of the code, the command line, the summary line."""
+
+import os
+import subprocess
+
+import pytest
+
+from lnnmpc.train import provenance
+
+
+def _git(repo, *args):
+    return subprocess.run(["git", "-C", str(repo), *args], check=True, capture_output=True, text=True).stdout.strip()
+
+
+def test_git_state_names_the_commit_and_whether_tracked_files_changed(tmp_path):
+    repo = tmp_path / "repo"
+    (repo / "pkg").mkdir(parents=True)
+    _git(repo, "init", "-q")
+    (repo / "pkg" / "a.py").write_text("x = 1\n")
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "one")
+    head = _git(repo, "rev-parse", "HEAD")
+    assert provenance.git_state(str(repo / "pkg")) == {"commit": head, "dirty": False}
+    (repo / "pkg" / "new.py").write_text("untracked\n")  # untracked files do not count
+    assert provenance.git_state(str(repo / "pkg")) == {"commit": head, "dirty": False}
+    (repo / "pkg" / "a.py").write_text("x = 2\n")
+    assert provenance.git_state(str(repo / "pkg")) == {"commit": head, "dirty": True}
+
+
+def test_git_state_outside_a_checkout_is_none(tmp_path, monkeypatch):
+    monkeypatch.setenv("GIT_CEILING_DIRECTORIES", str(tmp_path))  # do not find a repository above tmp_path
+    assert provenance.git_state(str(tmp_path)) == {"commit": None, "dirty": None}
+
+
+def test_command_line_names_package_scripts_as_modules_and_quotes_arguments():
+    root = os.path.dirname(provenance.__file__)
+    assert (provenance.command_line([os.path.join(root, "cli.py"), "train", "--obs", "noise=0.1, flicker=0.2"])
+            == "python -m lnnmpc.train.cli train --obs 'noise=0.1, flicker=0.2'")
+    assert provenance.command_line(["/usr/bin/pytest", "-q"]) == "/usr/bin/pytest -q"
+    assert provenance.command_line([]) == ""
+
+
+@pytest.mark.parametrize("entries, expected", [
+    ([], "not recorded"),
+    ([{"git": {"commit": "a" * 40, "dirty": False}, "versions": {"jax": "0.11.2", "mujoco-mjx": "3.17.0"}}],
+     "aaaaaaaaaaaa; jax 0.11.2, mujoco-mjx 3.17.0"),
+    ([{"git": {"commit": None, "dirty": None}, "versions": {"jax": "0.11.2"}}] * 2,
+     "not a git checkout; jax 0.11.2; 2 starts (resumed)"),
+    ([{"git": {"commit": "b" * 40, "dirty": True}, "versions": {}}], "bbbbbbbbbbbb (uncommitted changes)"),
+])
+def test_code_line_summarises_the_newest_start(entries, expected):
+    assert provenance.code_line(entries) == expected
+
+
+def test_provenance_entry_records_the_installed_versions():
+    from importlib import metadata
+
+    entry = provenance.provenance_entry(["prog", "--flag"])
+    assert entry["argv"] == ["prog", "--flag"] and entry["command"] == "prog --flag"
+    assert entry["versions"]["jax"] == metadata.version("jax") and entry["cwd"] == os.getcwd()
+    assert set(entry["git"]) == {"commit", "dirty"}
