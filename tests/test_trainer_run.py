@@ -164,7 +164,8 @@ def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp
     starts = json.loads((run / "config.json").read_text())["provenance"]  # the start and both resumes
     assert [entry["command"].endswith(f"train --resume {run}") for entry in starts] == [False, True, True]
     assert starts[0]["time"] <= starts[1]["time"] <= starts[2]["time"]
-    assert "3 starts (resumed)" in (run / "summary.md").read_text()
+    summary = (run / "summary.md").read_text()
+    assert "3 starts (resumed)" in summary and f"Started by `{starts[0]['command']}`." in summary
 
 
 def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_path, cache):

@@ -75,7 +75,8 @@ def provenance_entry(argv: list[str] | None = None) -> dict:
 
 
 def code_line(entries: list[dict]) -> str:
-    """Summary of the newest entry for summary.md: ``827c1e3d0a12 (uncommitted changes); jax 0.11.2, ...``."""
+    """The code and versions of the newest entry (start or resume) for summary.md, and how many starts there
+    were: ``827c1e3d0a12 (uncommitted changes); jax 0.11.2, mujoco-mjx 3.17.0; 2 starts (resumed)``."""
     if not entries:
         return "not recorded"
     latest = entries[-1]

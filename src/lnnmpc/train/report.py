@@ -203,8 +203,8 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
              f"| physics, envs per seed | {c['physics']}, {c['envs']} |",
              f"| devices | {config.get('num_devices', 1)} × {(config.get('devices') or ['?'])[0]} |",
              f"| code | {provenance.code_line(config.get('provenance', []))} |", ""]
-    if config.get("provenance"):
-        lines += [f"Started by `{config['provenance'][-1]['command']}`.", ""]
+    if config.get("provenance"):  # the first start's command (a resume's is `... train --resume <run>`)
+        lines += [f"Started by `{config['provenance'][0]['command']}`.", ""]
     if table:
         last, best = table[-1], max(table, key=lambda t: t["mean"])
         lines += [f"**Final return {last['mean']:.1f} ± {last['std']:.1f}** at {last['env_step']:,} env steps "
