@@ -198,12 +198,15 @@ def test_select_conditions_by_task_and_training_corruption(tmp_path, capsys):
     assert run.main(["table5_4", "--train-obs", "delay=3", "--dry-run", "--runs-dir", str(tmp_path)]) == 2
 
 
+DEVICE_BATCH = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
+
+
 def test_device_batch_check_validates_every_job_line(tmp_path):
     """``device_batch.sh check``: each line of a jobs file validated on the CPU before any device time."""
     import subprocess
     import sys
 
-    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
+    script = DEVICE_BATCH
     jobs = tmp_path / "jobs.txt"
     jobs.write_text("# a comment\n\n"
                     "study-ok   experiment fig5_19 --small --seeds 1\n"
@@ -219,26 +222,31 @@ def test_device_batch_check_validates_every_job_line(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["jobs.txt"]  # nothing written beside it
 
 
+def _fake_gpu_machine(tmp_path, gpus: int, python_body: str, **extra) -> dict:
+    """The environment of a fake GPU machine for ``device_batch.sh``: an ``nvidia-smi`` that lists ``gpus`` GPUs
+    and a PYTHON that runs the shell ``python_body``; no OUT, MEM_FRACTION or FORCE from outside; ``extra`` added."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    listing = "".join(f"GPU {i}: fake\\n" for i in range(gpus))
+    (bin_dir / "nvidia-smi").write_text(f'#!/bin/sh\n[ "$1" = -L ] && printf "{listing}"\nexit 0\n')
+    (bin_dir / "fake-python").write_text(f"#!/bin/sh\n{python_body}\n")
+    for tool in ("nvidia-smi", "fake-python"):
+        os.chmod(bin_dir / tool, 0o755)
+    env = {k: v for k, v in os.environ.items() if k not in ("OUT", "MEM_FRACTION", "FORCE")}
+    return {**env, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHON": str(bin_dir / "fake-python"), **extra}
+
+
 def test_device_batch_start_places_pinned_and_round_robin_jobs(tmp_path):
     """``device_batch.sh start`` on a fake two-GPU machine (an ``nvidia-smi`` that lists two GPUs, a PYTHON that
     prints its GPU and memory share): ``name@k`` lines go to GPU k mod 2, the others round robin by position,
     each process gets 0.9 / (jobs on its GPU) of the memory; a GPU that is no number stops it before any launch."""
     import subprocess
 
-    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    (bin_dir / "nvidia-smi").write_text('#!/bin/sh\n[ "$1" = -L ] && printf "GPU 0: fake\\nGPU 1: fake\\n"\nexit 0\n')
-    (bin_dir / "fake-python").write_text(
-        '#!/bin/sh\necho "gpu=$CUDA_VISIBLE_DEVICES mem=$XLA_PYTHON_CLIENT_MEM_FRACTION"\n')
-    for tool in ("nvidia-smi", "fake-python"):
-        os.chmod(bin_dir / tool, 0o755)
+    script = DEVICE_BATCH
+    env = _fake_gpu_machine(tmp_path, 2, 'echo "gpu=$CUDA_VISIBLE_DEVICES mem=$XLA_PYTHON_CLIENT_MEM_FRACTION"')
     jobs = tmp_path / "jobs.txt"
     jobs.write_text("a    --task cartpole-balance\nb@0  --task cartpole-balance\n"
                     "c    --task cartpole-balance\nd@3  --task cartpole-balance\n")
-    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHON": str(bin_dir / "fake-python")}
-    env.pop("OUT", None)
-    env.pop("MEM_FRACTION", None)
     result = subprocess.run(["bash", script, "start", str(jobs), "60", "20"], capture_output=True, text=True,
                             timeout=120, env=env, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
@@ -272,18 +280,10 @@ def test_device_batch_after_runs_a_command_once_its_job_has_ended(tmp_path):
     import subprocess
     import time
 
-    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
-    bin_dir = tmp_path / "bin"
-    bin_dir.mkdir()
-    (bin_dir / "nvidia-smi").write_text('#!/bin/sh\n[ "$1" = -L ] && printf "GPU 0: fake\\nGPU 1: fake\\n"\nexit 0\n')
-    (bin_dir / "fake-python").write_text("#!/bin/sh\nexit 3\n")
-    for tool in ("nvidia-smi", "fake-python"):
-        os.chmod(bin_dir / tool, 0o755)
+    script = DEVICE_BATCH
+    env = _fake_gpu_machine(tmp_path, 2, "exit 3", AFTER_POLL="0.05")
     jobs = tmp_path / "jobs.txt"
     jobs.write_text("a@0  --task cartpole-balance\n")
-    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHON": str(bin_dir / "fake-python"),
-           "AFTER_POLL": "0.05"}
-    env.pop("OUT", None)
     run = lambda *args: subprocess.run(["bash", script, *args], capture_output=True, text=True, timeout=60, env=env,
                                        cwd=tmp_path)
     batch = tmp_path / "runs" / "batch"
@@ -312,6 +312,35 @@ def test_device_batch_after_runs_a_command_once_its_job_has_ended(tmp_path):
     assert refused.returncode == 2 and "no job 'zz'" in refused.stderr and "(jobs: a b )" in refused.stderr
     refused = run("after", "a", "x", "true")
     assert refused.returncode == 2 and "bad GPU 'x'" in refused.stderr
+
+
+def test_device_batch_start_refuses_while_an_earlier_starts_jobs_run(tmp_path):
+    """A second ``start`` in one hold (the next jobs file): refused, naming them, while jobs of the first have no
+    NAME.rc yet; ``FORCE=1`` starts beside them; once they have ended it starts and adds its runs to the batch."""
+    import subprocess
+
+    script = DEVICE_BATCH
+    env = _fake_gpu_machine(tmp_path, 1, "exit 0")
+    batch = tmp_path / "runs" / "batch"
+    batch.mkdir(parents=True)
+    (batch / "commands.txt").write_text("first (GPU 0): --task cartpole-balance\n"
+                                        "done (GPU 0): --task cartpole-balance\n")
+    (batch / "done.rc").write_text("0\n")  # ended; "first" still runs
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("second  --task cartpole-balance\n")
+    start = lambda **extra: subprocess.run(["bash", script, "start", str(jobs), "60", "0"], capture_output=True,
+                                           text=True, timeout=60, env={**env, **extra}, cwd=tmp_path)
+    refused = start()
+    assert refused.returncode == 2 and "jobs of an earlier start still run" in refused.stderr
+    assert "first ;" in refused.stderr and "done" not in refused.stderr
+    assert not (batch / "second.log").exists()
+    assert start(FORCE="1").returncode == 0 and (batch / "second.log").exists()
+    (batch / "first.rc").write_text("0\n")
+    (batch / "second.rc").write_text("0\n")
+    jobs.write_text("third  --task cartpole-balance\n")
+    assert start().returncode == 0
+    names = [line.split(" ")[0] for line in (batch / "commands.txt").read_text().splitlines()]
+    assert names == ["first", "done", "second", "third"]
 
 
 def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):

@@ -3,7 +3,8 @@
 #
 #   device_batch.sh start JOBS SECONDS REPORT   launch every job of the file JOBS (each under `timeout -s TERM
 #                                               SECONDS`, in its own session so that it outlives the call), then
-#                                               report after REPORT seconds or when all have ended
+#                                               report after REPORT seconds or when all have ended; refused
+#                                               while jobs of an earlier start still run (FORCE=1 overrides)
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
 #   device_batch.sh after NAME GPU COMMAND...   once the job NAME of the running batch has ended (its exit status
 #                                               is in runs/batch/NAME.rc), run COMMAND on GPU in the background
@@ -87,6 +88,14 @@ job_command() {  # NAME ARGS DIR TRAIN_EXTRA STUDY_EXTRA
     fi
 }
 
+# The jobs of earlier starts on this machine that have not ended (no NAME.rc yet), space-separated: a second
+# `start` in the same hold (another jobs file once the first has ended) adds its runs beside the first's.
+still_running() {
+    grep -o '^[^ ]* (GPU' "$BATCH/commands.txt" 2>/dev/null | cut -d' ' -f1 | while read -r name; do
+        [ -f "$BATCH/$name.rc" ] || printf '%s ' "$name"
+    done
+}
+
 report_after() {
     local end=$(($(date +%s) + $1))
     while [ "$(date +%s)" -lt "$end" ] && pgrep -f "lnnmpc[.](train[.]cli train|experiments[.]run)" >/dev/null; do sleep 5; done
@@ -116,6 +125,12 @@ start)
     [ "${gpus:-0}" -ge 1 ] || gpus=1
     all_alone "$jobs" || exit 2
     placement=$(place_jobs "$jobs" "$gpus") || exit 2
+    running=$(still_running)
+    if [ -n "$running" ] && [ "${FORCE:-0}" != 1 ]; then
+        echo "jobs of an earlier start still run (no $BATCH/<name>.rc yet): $running; 'wait' for them first," \
+            "or FORCE=1 to start beside them" >&2
+        exit 2
+    fi
     per_gpu=$(echo "$placement" | awk '{print $2}' | sort | uniq -c | sort -rn | awk 'NR == 1 {print $1}')
     echo "$count jobs on $gpus GPU(s), up to $per_gpu per GPU" | tee "$BATCH/gpus.txt"
     if [ "${MPS:-1}" = 1 ] && command -v nvidia-cuda-mps-control >/dev/null; then
