@@ -65,7 +65,8 @@ compare: $(STAMP)
 		$(if $(METRICS),--metrics $(METRICS))
 
 # make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"]
-#   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means) and the speed
+#   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means), the speed and
+#   the commands that started them
 tables: $(STAMP)
 	$(PY) -m lnnmpc.train.tables $(RUNS) $(if $(LABELS),--labels $(LABELS))
 

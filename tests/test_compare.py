@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
 
 import pytest
@@ -140,3 +141,15 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
     assert row == "| A | 100.0 | 18.0 (3 × 10 steps) | 300 | 150 | 3.5 (1) | 122 |"
     assert tables_main([b, "--speed-only"]) == 2
     assert "has no timing.csv" in capsys.readouterr().err
+    with open(os.path.join(a, "config.json")) as f:  # a provenance entry as the trainer writes it
+        config = json.load(f)
+    config["provenance"] = [{"command": "python -m lnnmpc.train.cli train --task cartpole-swingup"},
+                            {"command": f"python -m lnnmpc.train.cli train --resume {a}"}]
+    runfolder.write_text(os.path.join(a, "config.json"), json.dumps(config))
+    assert tables_main([a, b, "--labels", "A", "B", "--commands-only"]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "```bash", "# A", "python -m lnnmpc.train.cli train --task cartpole-swingup",  # the first start's
+        "# B", f"# ({b}: no command recorded)", "```"]
+    assert tables_main([a, "--labels", "A"]) == 0  # all three by default
+    out = capsys.readouterr().out
+    assert out.startswith("| env steps | A: mean") and "| run | compile s |" in out and out.rstrip().endswith("```")

@@ -1,14 +1,15 @@
 """``python -m lnnmpc.train.tables RUN [RUN ...]``: markdown tables of several runs, to paste into a results page.
 
     python -m lnnmpc.train.tables runs/a runs/b --labels "H_plan 10" "H_plan 3"
-    python -m lnnmpc.train.tables runs/a --speed-only
+    python -m lnnmpc.train.tables runs/a --speed-only        # or --returns-only, --commands-only
 
 Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds ×
 episodes, the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations.
 A run that has no evaluation at a step another run has gets an empty cell. Speed (from each ``timing.csv``, wall
 seconds): compilation, training chunks (total, count, environment steps per chunk per seed), the median chunk's
 environment steps per second over all seeds and per seed, evaluations (total, count) and everything logged.
-These are the tables the READMEs under ``experiments/results/`` quote.
+Commands: the command line that started each run (``config.json``'s provenance). These are the tables the READMEs
+under ``experiments/results/`` quote.
 """
 
 from __future__ import annotations
@@ -86,6 +87,16 @@ def speed_table(runs: list[str], labels: list[str]) -> str:
     return "\n".join(lines)
 
 
+def commands_block(runs: list[str], labels: list[str]) -> str:
+    """A bash block of the command that started each run (``config.json``'s first provenance entry), each after
+    a ``# label`` comment; a run older than provenance records says so."""
+    lines = ["```bash"]
+    for run, label in zip(runs, labels, strict=True):
+        starts = runfolder.read_provenance(run)
+        lines += [f"# {label}", starts[0]["command"] if starts else f"# ({run}: no command recorded)"]
+    return "\n".join(lines + ["```"])
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m lnnmpc.train.tables", description=__doc__.split("\n")[0])
     p.add_argument("runs", nargs="+", help="run folders")
@@ -94,12 +105,15 @@ def main(argv: list[str] | None = None) -> int:
     which = p.add_mutually_exclusive_group()
     which.add_argument("--returns-only", action="store_true", help="only the evaluation table")
     which.add_argument("--speed-only", action="store_true", help="only the speed table")
+    which.add_argument("--commands-only", action="store_true", help="only the commands that started the runs")
     args = p.parse_args(argv)
 
     def tables() -> str:
         labels = [curve["label"] for curve in load_curves(args.runs, args.labels)]  # checks folders and labels
-        parts = [] if args.speed_only else [returns_table(args.runs, labels)]
-        parts += [] if args.returns_only else [speed_table(args.runs, labels)]
+        only = args.returns_only or args.speed_only or args.commands_only
+        parts = [returns_table(args.runs, labels)] if args.returns_only or not only else []
+        parts += [speed_table(args.runs, labels)] if args.speed_only or not only else []
+        parts += [commands_block(args.runs, labels)] if args.commands_only or not only else []
         return "\n\n".join(parts)
 
     return command_status(tables)
