@@ -380,6 +380,7 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     assert "plain run (file it by hand): runs/batch/plain-run, copied to runs/ingested/plain-run" in result.stdout
     assert (work / "runs" / "ingested" / "plain-run" / "config.json").read_text() == "{}"
     assert "(no table for plain-run)" in result.stdout  # its config.json is no trainer's: said, not fatal
+    assert "(no speed table)" in result.stdout and "(no commands)" in result.stdout
 
 
 def test_ingest_batch_never_replaces_a_longer_filed_run_with_a_shorter_copy(tmp_path):

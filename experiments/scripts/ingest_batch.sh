@@ -78,7 +78,7 @@ for run in "$tmp"/*/; do
         plain+=("$staging/$name") names+=("$name")
     fi
 done
-if [ ${#plain[@]} -gt 0 ]; then  # the tables its README will quote: each run's evaluations, then all speeds
+if [ ${#plain[@]} -gt 0 ]; then  # what its README will quote: each run's evaluations, all speeds, all commands
     for i in "${!plain[@]}"; do
         echo
         "$python" -m lnnmpc.train.tables "${plain[$i]}" --labels "${names[$i]}" --returns-only \
@@ -86,4 +86,6 @@ if [ ${#plain[@]} -gt 0 ]; then  # the tables its README will quote: each run's 
     done
     echo
     "$python" -m lnnmpc.train.tables "${plain[@]}" --labels "${names[@]}" --speed-only || echo "(no speed table)"
+    echo
+    "$python" -m lnnmpc.train.tables "${plain[@]}" --labels "${names[@]}" --commands-only || echo "(no commands)"
 fi
