@@ -38,7 +38,8 @@ def default_label(config: dict) -> str:
 
 
 def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
-    """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table"} (table: :func:`eval_table` rows).
+    """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table", "config"} (table:
+    :func:`eval_table` rows; config: the run's whole config.json).
 
     Raises ConfigError naming a folder that is not a run folder or has no evaluation yet, and a label count
     that does not match the runs."""
@@ -54,7 +55,7 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
             raise ConfigError(f"{run!r} has no evaluation rows in eval.csv yet")
         c = config["config"]
         curves.append({"run": run, "label": labels[i] if labels else default_label(config), "task": c["task"],
-                       "agent": c["agent"], "eval_obs": c["eval_obs"], "table": table})
+                       "agent": c["agent"], "eval_obs": c["eval_obs"], "table": table, "config": config})
     return curves
 
 

@@ -38,11 +38,13 @@ def episode_stats(rows: list[dict]) -> dict[int, dict]:
     return stats
 
 
-def returns_table(runs: list[str], labels: list[str]) -> str:
-    """The markdown table of the runs' evaluations, one row per step any run evaluated at."""
-    stats = [episode_stats(runfolder.read_csv(os.path.join(run, "eval.csv"))) for run in runs]
-    header = ["env steps"] + [f"{label}: {part}" for label in labels for part in ("mean ± std", "over seeds", "seeds")]
-    lines = ["| " + " | ".join(header) + " |", "|---:" + "|---:|---:|---" * len(runs) + "|"]
+def returns_table(curves: list[dict]) -> str:
+    """The markdown table of the runs' evaluations (``curves``: :func:`load_curves`), one row per step any run
+    evaluated at."""
+    stats = [episode_stats(runfolder.read_csv(os.path.join(curve["run"], "eval.csv"))) for curve in curves]
+    header = ["env steps"] + [f"{curve['label']}: {part}" for curve in curves
+                              for part in ("mean ± std", "over seeds", "seeds")]
+    lines = ["| " + " | ".join(header) + " |", "|---:" + "|---:|---:|---" * len(curves) + "|"]
     for step in sorted(set().union(*stats)):
         cells = [f"{step:,}"]
         for run_stats in stats:
@@ -74,26 +76,25 @@ def speed_row(run: str, seeds: int) -> dict:
             "evaluations": len(seconds("evaluate")), "all_s": sum(float(r["seconds"]) for r in rows)}
 
 
-def speed_table(runs: list[str], labels: list[str]) -> str:
-    """The markdown table of the runs' speeds (one row per run)."""
+def speed_table(curves: list[dict]) -> str:
+    """The markdown table of the runs' speeds (``curves``: :func:`load_curves`; one row per run)."""
     lines = ["| run | compile s | training chunks s | env steps/s, all seeds (median chunk) | per seed | "
              "evaluations s | all s |", "|---|---:|---:|---:|---:|---:|---:|"]
-    for run, label in zip(runs, labels, strict=True):
-        seeds = runfolder.read_config(run)["config"]["seeds"]
-        s = speed_row(run, seeds)
-        lines.append(f"| {label} | {s['compile_s']:.1f} | {s['chunks_s']:,.1f} ({s['chunks']} × "
+    for curve in curves:
+        s = speed_row(curve["run"], curve["config"]["config"]["seeds"])
+        lines.append(f"| {curve['label']} | {s['compile_s']:.1f} | {s['chunks_s']:,.1f} ({s['chunks']} × "
                      f"{s['chunk_steps']:,} steps) | {s['steps_per_s']:.0f} | {s['steps_per_s_per_seed']:.0f} | "
                      f"{s['evaluations_s']:.1f} ({s['evaluations']}) | {s['all_s']:,.0f} |")
     return "\n".join(lines)
 
 
-def commands_block(runs: list[str], labels: list[str]) -> str:
-    """A bash block of the command that started each run (``config.json``'s first provenance entry), each after
-    a ``# label`` comment; a run older than provenance records says so."""
+def commands_block(curves: list[dict]) -> str:
+    """A bash block of the command that started each run (``curves``: :func:`load_curves`; config.json's first
+    provenance entry), each after a ``# label`` comment; a run older than provenance records says so."""
     lines = ["```bash"]
-    for run, label in zip(runs, labels, strict=True):
-        starts = runfolder.read_provenance(run)
-        lines += [f"# {label}", starts[0]["command"] if starts else f"# ({run}: no command recorded)"]
+    for curve in curves:
+        starts = curve["config"].get("provenance")
+        lines += [f"# {curve['label']}", starts[0]["command"] if starts else f"# ({curve['run']}: no command recorded)"]
     return "\n".join(lines + ["```"])
 
 
@@ -109,11 +110,11 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
 
     def tables() -> str:
-        labels = [curve["label"] for curve in load_curves(args.runs, args.labels)]  # checks folders and labels
+        curves = load_curves(args.runs, args.labels)  # checks folders and labels; reads each config.json once
         only = args.returns_only or args.speed_only or args.commands_only
-        parts = [returns_table(args.runs, labels)] if args.returns_only or not only else []
-        parts += [speed_table(args.runs, labels)] if args.speed_only or not only else []
-        parts += [commands_block(args.runs, labels)] if args.commands_only or not only else []
+        parts = [returns_table(curves)] if args.returns_only or not only else []
+        parts += [speed_table(curves)] if args.speed_only or not only else []
+        parts += [commands_block(curves)] if args.commands_only or not only else []
         return "\n\n".join(parts)
 
     return command_status(tables)
