@@ -88,10 +88,15 @@ job_command() {  # NAME ARGS DIR TRAIN_EXTRA STUDY_EXTRA
     fi
 }
 
+# The names of the jobs that `start` launched on this machine (its commands.txt), one per line.
+batch_jobs() {
+    grep -o '^[^ ]* (GPU' "$BATCH/commands.txt" 2>/dev/null | cut -d' ' -f1
+}
+
 # The jobs of earlier starts on this machine that have not ended (no NAME.rc yet), space-separated: a second
 # `start` in the same hold (another jobs file once the first has ended) adds its runs beside the first's.
 still_running() {
-    grep -o '^[^ ]* (GPU' "$BATCH/commands.txt" 2>/dev/null | cut -d' ' -f1 | while read -r name; do
+    batch_jobs | while read -r name; do
         [ -f "$BATCH/$name.rc" ] || printf '%s ' "$name"
     done
 }
@@ -175,8 +180,8 @@ after)
     shift 2
     [ $# -ge 1 ] || { echo "after: give the command to run once $name has ended" >&2; exit 2; }
     [[ $gpu =~ ^[0-9]+$ ]] || { echo "after: bad GPU '$gpu': give a number" >&2; exit 2; }
-    if ! grep -q "^$name (GPU" "$BATCH/commands.txt" 2>/dev/null; then
-        known=$(grep -o '^[^ ]* (GPU' "$BATCH/commands.txt" 2>/dev/null | cut -d' ' -f1 | tr '\n' ' ')
+    if ! batch_jobs | grep -qxF "$name"; then
+        known=$(batch_jobs | tr '\n' ' ')
         echo "after: no job '$name' in $BATCH/commands.txt (jobs: ${known:-none})" >&2
         exit 2
     fi
