@@ -20,12 +20,13 @@ import time
 import numpy as np
 import pytest
 
-CONFIG = ["--task", "cartpole-swingup", "--small", "--model-size", "1", "--seeds", "2", "--steps", "2200",
+CONFIG = ["--task", "cartpole-swingup", "--small", "--model-size", "1", "--seeds", "2", "--steps", "2800",
           "--seed-steps", "1000", "--eval-every", "600", "--eval-episodes", "2", "--batch-size", "64",
           "--checkpoint-every", "600", "--replay-capacity", "3000", "--keep-checkpoints", "10"]
-# Seed phase to 1,000 env steps, then chunks of 300 iterations (600 env steps, less at an episode's start), each
-# followed by an evaluation and a checkpoint; the run ends with the chunk that passes 2,200.
-CHECKPOINTS = [1000, 1598, 2196, 2796]
+# Seed phase to 1,000 env steps (500 iterations), then the 902 iterations that reach 2,800 (two of them reset
+# episodes and take no step) in 4 equal chunks of 226 (at most eval_every = 300 iterations each); an evaluation and
+# a checkpoint at the first chunk boundary past each multiple of 600 (not at 2,352) and at the end, 2,804.
+CHECKPOINTS = [1000, 1450, 1902, 2804]
 
 
 @pytest.fixture(scope="module")
@@ -206,7 +207,11 @@ def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(referenc
     monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
     run = tmp_path / "diverged"
     shutil.copytree(reference, run)
-    before, eval_before = _steps(run), (run / "eval.csv").read_text()
+    # back to the second checkpoint: the resume keeps the budget, hence the chunk length, whose program is cached
+    for step in CHECKPOINTS[2:]:
+        shutil.rmtree(run / "checkpoints" / str(step))
+    before = _steps(run)
+    eval_before = [r for r in _rows(reference / "eval.csv") if int(r["env_step"]) <= before[-1]]
     real = trainer._Run.chunk_fn
 
     def poisoned(self, name, length):
@@ -223,22 +228,23 @@ def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(referenc
     # compile_ahead off: the first training chunk diverges, so the run never evaluates (nothing to compile ahead)
     config = runfolder.saved_config(str(run), compile_ahead="off")
     with pytest.raises(lnnmpc.TrainingDiverged) as error:
-        lnnmpc.train(config, resume=str(run), steps=before[-1] + 600)
+        lnnmpc.train(config, resume=str(run))
     last = before[-1]
+    assert before == CHECKPOINTS[:2] and last == 1450
     assert f"non-finite total_loss (NaN or Inf) at env step ~{last + 16:,}, seed 1" in str(error.value)
     assert f"last good checkpoint ({last:,} env steps) is kept" in str(error.value)
-    assert _steps(run) == before and (run / "eval.csv").read_text() == eval_before
+    assert _steps(run) == before and _rows(run / "eval.csv") == eval_before
 
 
 def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
     import lnnmpc
 
     monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
-    result = lnnmpc.evaluate(str(reference), episodes=4, checkpoint=1598, verbose=False)
-    assert result.returns.shape == (2, 4) and result.checkpoint == 1598 and result.backend == "mjx"
+    result = lnnmpc.evaluate(str(reference), episodes=4, checkpoint=1450, verbose=False)
+    assert result.returns.shape == (2, 4) and result.checkpoint == 1450 and result.backend == "mjx"
     assert np.all((result.returns >= 0) & (result.returns <= 1000))
-    assert os.path.basename(result.path) == "mjx-clean-1598.csv" and len(_rows(result.path)) == 8
-    with pytest.raises(lnnmpc.ConfigError, match="checkpoint 500 is not in .*; available: 1000, 1598, 2196, 2796"):
+    assert os.path.basename(result.path) == "mjx-clean-1450.csv" and len(_rows(result.path)) == 8
+    with pytest.raises(lnnmpc.ConfigError, match="checkpoint 500 is not in .*; available: 1000, 1450, 1902, 2804"):
         lnnmpc.evaluate(str(reference), checkpoint=500)
 
 
@@ -272,8 +278,8 @@ def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(refere
     result = _run(["eval", str(reference), "--episodes", "2", "--backend", "dm_control", "--obs", "noise=0.1,delay=2"],
                   cache)
     assert result.returncode == 0, result.stderr[-3000:]
-    assert "checkpoint 2,796 on dm_control with delay2-noise0.1: return " in result.stdout and " ± " in result.stdout
-    rows = _rows(reference / "evals" / "dm_control-delay2-noise0.1-2796.csv")
+    assert "checkpoint 2,804 on dm_control with delay2-noise0.1: return " in result.stdout and " ± " in result.stdout
+    rows = _rows(reference / "evals" / "dm_control-delay2-noise0.1-2804.csv")
     assert [(int(r["seed"]), int(r["episode"])) for r in rows] == [(0, 0), (0, 1), (1, 0), (1, 1)]
     returns = np.asarray([float(r["return"]) for r in rows])
     assert np.all((returns > 0) & (returns <= 1000)) and {r["backend"] for r in rows} == {"dm_control"}

@@ -138,7 +138,8 @@ def describe_setup(setup) -> str:
             f"  {c.task}, {c.agent}, {c.seeds} seed(s) x {c.envs} env(s), {c.steps:,} env steps, "
             f"obs {obs_tag(c.obs)}, eval obs {obs_tag(c.eval_obs)}\n"
             f"  agent overrides: {overrides}\n"
-            f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps, replay "
+            f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps (ends at "
+            f"{setup.final_env_steps:,} env steps), replay "
             f"{loop.config.replay_capacity:,} per env, batch {loop.config.batch_size}, "
             f"{setup.num_devices} device(s)\n")
 

@@ -2,15 +2,18 @@
 
     import lnnmpc
     run = lnnmpc.train(lnnmpc.TrainConfig(task="cartpole-swingup", seeds=4, steps=100_000, obs="noise=0.1"))
-    run = lnnmpc.train(resume=run, steps=200_000)          # continue (or extend) a run exactly
+    run = lnnmpc.train(resume=run, steps=200_000)          # extend a run (or continue it exactly: no steps)
 
 Order of work: the configuration is validated completely (environments and agent are built, the run folder is
 checked for write access, a resumed checkpoint is checked against the configuration and the state layout)
 before anything is compiled. Then: seed phase, update burst, training chunks; an evaluation every
 ``eval_every`` environment steps, a checkpoint every ``checkpoint_every`` (at the first chunk boundary past each
 multiple), at the end, and on Ctrl-C / SIGTERM (after the running chunk; a second Ctrl-C aborts at once).
+The chunks are of equal length, sized so that the last one ends at the budget (:mod:`lnnmpc.train.schedule`).
 Checkpoints hold the whole state and the host's counters, and the chunk schedule depends only on the
-configuration, so a resumed run computes exactly what the uninterrupted run would have.
+configuration, so a resumed run computes exactly what the uninterrupted run would have. An extended budget
+resizes the chunks from the resume on: the training is the same (it does not depend on where chunks end), the
+evaluations and checkpoints may fall at other steps than in a run started with that budget.
 
 A NaN or Inf in a loss metric or in the agent's parameters stops the run with :class:`TrainingDiverged` naming the
 environment step, seed and metric; the newest checkpoint (written before the bad chunk) is kept as it is.
@@ -34,7 +37,7 @@ import numpy as np
 from lnnmpc import envs
 from lnnmpc.agents.registry import make_agent, task_default_overrides
 from lnnmpc.replay import replay_capacity_for
-from lnnmpc.train import report, runfolder
+from lnnmpc.train import report, runfolder, schedule
 from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from lnnmpc.train.compat import agent_config_json, check_agent_config, check_compatible, check_layout, state_signature
 from lnnmpc.train.config import ConfigError, TrainConfig
@@ -67,9 +70,23 @@ class Setup:
         return self.config.envs * self.loop.env.action_repeat
 
     @property
+    def seed_iterations(self) -> int:
+        """Loop iterations of the random seed phase."""
+        return math.ceil(self.config.seed_steps / self.per_iteration)
+
+    @property
     def chunk(self) -> int:
-        """Iterations per training chunk: fixed by the configuration, so resumed runs chunk identically."""
-        return max(1, min(self.config.eval_every // self.per_iteration, MAX_CHUNK))
+        """Iterations per training chunk (:func:`schedule.chunk_length`: equal chunks that end the run at its
+        budget). Fixed by the configuration, so a resumed run with the same budget chunks identically."""
+        c = self.config
+        return schedule.chunk_length(c.steps, self.seed_iterations, self.per_iteration, self.loop.env.episode_length,
+                                     c.eval_every, MAX_CHUNK)
+
+    @property
+    def final_env_steps(self) -> int:
+        """Environment steps per seed at which the run ends (the first chunk boundary at or past ``steps``)."""
+        return schedule.final_steps(self.config.steps, self.seed_iterations, self.chunk, self.per_iteration,
+                                    self.loop.env.episode_length)
 
 
 def build_loop(config: TrainConfig) -> TrainingLoop:
@@ -225,7 +242,7 @@ class _Run:
     @property
     def seed_iterations(self) -> int:
         """Loop iterations of the random seed phase."""
-        return math.ceil(self.config.seed_steps / self.setup.per_iteration)
+        return self.setup.seed_iterations
 
     def _chunk_program(self, name: str, length: int):
         """``loop.<name>(ts, length)`` over seeds, jitted (compiled on the first call)."""
