@@ -24,7 +24,7 @@ CONFIG = ["--task", "cartpole-swingup", "--small", "--model-size", "1", "--seeds
           "--seed-steps", "1000", "--eval-every", "600", "--eval-episodes", "2", "--batch-size", "64",
           "--checkpoint-every", "600", "--replay-capacity", "3000", "--keep-checkpoints", "10"]
 # Seed phase to 1,000 env steps (500 iterations), then the 902 iterations that reach 2,800 (two of them reset
-# episodes and take no step) in 4 equal chunks of 226 (at most eval_every = 300 iterations each); an evaluation and
+# episodes and take no step) in 4 equal chunks of 226 (at most eval_every's 300 iterations each); an evaluation and
 # a checkpoint at the first chunk boundary past each multiple of 600 (not at 2,352) and at the end, 2,804.
 CHECKPOINTS = [1000, 1450, 1902, 2804]
 
