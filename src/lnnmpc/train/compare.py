@@ -38,8 +38,8 @@ def default_label(config: dict) -> str:
 
 
 def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
-    """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table", "config"} (table:
-    :func:`eval_table` rows; config: the run's whole config.json).
+    """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table", "rows", "config"} (table:
+    :func:`eval_table` rows; rows: eval.csv's own rows; config: the run's whole config.json).
 
     Raises ConfigError naming a folder that is not a run folder or has no evaluation yet, and a label count
     that does not match the runs."""
@@ -50,12 +50,14 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
     curves = []
     for i, run in enumerate(runs):
         config = runfolder.read_config(run)
-        table = eval_table(runfolder.read_csv(os.path.join(run, "eval.csv")))
+        rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
+        table = eval_table(rows)
         if not table:
             raise ConfigError(f"{run!r} has no evaluation rows in eval.csv yet")
         c = config["config"]
         curves.append({"run": run, "label": labels[i] if labels else default_label(config), "task": c["task"],
-                       "agent": c["agent"], "eval_obs": c["eval_obs"], "table": table, "config": config})
+                       "agent": c["agent"], "eval_obs": c["eval_obs"], "table": table, "rows": rows,
+                       "config": config})
     return curves
 
 

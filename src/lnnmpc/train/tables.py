@@ -41,7 +41,7 @@ def episode_stats(rows: list[dict]) -> dict[int, dict]:
 def returns_table(curves: list[dict]) -> str:
     """The markdown table of the runs' evaluations (``curves``: :func:`load_curves`), one row per step any run
     evaluated at."""
-    stats = [episode_stats(runfolder.read_csv(os.path.join(curve["run"], "eval.csv"))) for curve in curves]
+    stats = [episode_stats(curve["rows"]) for curve in curves]
     header = ["env steps"] + [f"{curve['label']}: {part}" for curve in curves
                               for part in ("mean ± std", "over seeds", "seeds")]
     lines = ["| " + " | ".join(header) + " |", "|---:" + "|---:|---:|---" * len(curves) + "|"]
