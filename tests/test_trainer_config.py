@@ -106,6 +106,9 @@ def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):
     # steps, checkpoint cadence, devices and the like may change; the replay buffer keeps its size.
     setup = validate(resume=run, steps=10**6)
     assert setup.config.steps == 10**6 and setup.config.replay_capacity == 3000 and setup.resume_step is None
+    # the extended budget sizes the chunks: the run ends within one iteration per chunk past 10**6
+    chunks = -(-(10**6 // setup.per_iteration) // setup.chunk)
+    assert 10**6 <= setup.final_env_steps < 10**6 + chunks * setup.per_iteration
     assert TrainConfig.from_dict(saved.to_dict()) == saved
     with pytest.raises(ConfigError, match=r"unknown configuration key\(s\) \['colour'\]"):
         TrainConfig.from_dict({**saved.to_dict(), "colour": 1})
