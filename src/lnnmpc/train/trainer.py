@@ -230,19 +230,15 @@ class _Run:
         """Compiles the programs the run will call (seed phase and update burst unless done, the training chunk,
         the evaluation) in parallel before the first one runs."""
         c, names = self.config, []
-        if not self.counters["seeded"] and self.seed_iterations:
-            names += [("seed_chunk", self.seed_iterations), ("update_burst", self.seed_iterations * c.envs)]
+        seed_iterations = self.setup.seed_iterations
+        if not self.counters["seeded"] and seed_iterations:
+            names += [("seed_chunk", seed_iterations), ("update_burst", seed_iterations * c.envs)]
         names.append(("train_chunk", self.setup.chunk))
         keys = self.placement.put(jax.random.split(jax.random.key(0), c.seeds))
         jobs = [(self._chunk_program(name, length), (self.ts,)) for name, length in names]
         jobs.append((self.evaluate, (self.ts.agent, keys)))
         *chunks, self.evaluate = compile_ahead(jobs)
         self._chunk_fns.update(dict(zip(names, chunks, strict=True)))
-
-    @property
-    def seed_iterations(self) -> int:
-        """Loop iterations of the random seed phase."""
-        return self.setup.seed_iterations
 
     def _chunk_program(self, name: str, length: int):
         """``loop.<name>(ts, length)`` over seeds, jitted (compiled on the first call)."""
@@ -289,7 +285,7 @@ class _Run:
     def _schedule(self, stop: _StopRequest) -> None:
         c, n = self.config, self.counters
         if not n["seeded"]:
-            seed_iterations = self.seed_iterations
+            seed_iterations = self.setup.seed_iterations
             if seed_iterations:
                 with self._timed("seed_phase") as timed:
                     ts, out = self.chunk_fn("seed_chunk", seed_iterations)(self.ts)
