@@ -71,11 +71,9 @@ def read_config(run: str) -> dict:
 def read_provenance(run: str) -> list[dict]:
     """The ``"provenance"`` entries (:mod:`lnnmpc.train.provenance`) of a run folder's config.json; [] where the
     folder has no config.json yet or it predates them."""
-    path = os.path.join(run, CONFIG_FILE)
-    if not os.path.isfile(path):
+    if not os.path.isfile(os.path.join(run, CONFIG_FILE)):
         return []
-    with open(path) as f:
-        return list(json.load(f).get("provenance", []))
+    return list(read_config(run).get("provenance", []))
 
 
 def saved_config(run: str, **changes) -> TrainConfig:
