@@ -138,7 +138,13 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
     assert tables_main([a, "--labels", "A", "--speed-only"]) == 0
     row = capsys.readouterr().out.splitlines()[-1]
     # median chunk 300 env steps/s over 2 seeds; everything logged 100 + 18 + 3.5 s
-    assert row == "| A | 100.0 | 18.0 (3 × 10 steps) | 300 | 150 | 3.5 (1) | 122 |"
+    assert row == "| A |  | 100.0 | 18.0 (3 × 10 steps) | 300 | 150 | 3.5 (1) | 122 |"  # no startup row: older runs
+    startup = {"env_step": 0, "phase": "startup", "seconds": 12.5, "env_steps_per_seed": 0,
+               "env_steps_per_s_all_seeds": 0.0}
+    runfolder.write_csv(os.path.join(a, "timing.csv"), list(timing[0]), [startup, *timing])
+    assert tables_main([a, "--labels", "A", "--speed-only"]) == 0
+    row = capsys.readouterr().out.splitlines()[-1]
+    assert row == "| A | 12.5 | 100.0 | 18.0 (3 × 10 steps) | 300 | 150 | 3.5 (1) | 134 |"  # "all" counts it
     assert tables_main([b, "--speed-only"]) == 2
     assert "has no timing.csv" in capsys.readouterr().err
     with open(os.path.join(a, "config.json")) as f:  # a provenance entry as the trainer writes it
@@ -152,4 +158,5 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
         "# B", f"# ({b}: no command recorded)", "```"]
     assert tables_main([a, "--labels", "A"]) == 0  # all three by default
     out = capsys.readouterr().out
-    assert out.startswith("| env steps | A: mean") and "| run | compile s |" in out and out.rstrip().endswith("```")
+    assert out.startswith("| env steps | A: mean") and "| run | startup s | compile s |" in out
+    assert out.rstrip().endswith("```")

@@ -59,3 +59,18 @@ def test_provenance_entry_records_the_installed_versions():
     assert entry["argv"] == ["prog", "--flag"] and entry["command"] == "prog --flag"
     assert entry["versions"]["jax"] == metadata.version("jax") and entry["cwd"] == os.getcwd()
     assert set(entry["git"]) == {"commit", "dirty"}
+
+
+def test_process_seconds_counts_from_the_process_start(tmp_path):
+    import sys
+    import time
+
+    # a child that imports numpy first, then asks its age: at least its numpy import, at most its whole life
+    script = ("import time; t = time.perf_counter(); import numpy; spent = time.perf_counter() - t; "
+              "from lnnmpc.train.provenance import process_seconds; print(process_seconds(), spent)")
+    begun = time.perf_counter()
+    out = subprocess.run([sys.executable, "-c", script], check=True, capture_output=True, text=True).stdout
+    lived = time.perf_counter() - begun
+    age, numpy_import = (float(x) for x in out.split())
+    assert numpy_import - 0.011 <= age <= lived + 0.011  # /proc's clock ticks: 10 ms
+    assert provenance.process_seconds() > 0  # this test process, started before the test

@@ -46,7 +46,8 @@ def _payload(tree: Any) -> dict:
 
 def _unpayload(payload: dict, like: Any) -> Any:
     leaves, treedef = jax.tree_util.tree_flatten(like)
-    empty = lambda leaf: leaf if isinstance(leaf, jax.Array) else jnp.zeros(leaf.shape, leaf.dtype)
+    empty = lambda leaf: leaf if isinstance(leaf, jax.Array) else jax.device_put(jnp.zeros(leaf.shape, leaf.dtype),
+                                                                                  leaf.sharding)
     return jax.tree_util.tree_unflatten(treedef, [payload[str(i)] if str(i) in payload else empty(leaf)
                                                   for i, leaf in enumerate(leaves)])
 

@@ -53,6 +53,19 @@ def git_state(path: str = _PACKAGE_ROOT) -> dict[str, str | bool | None]:
     return {"commit": commit, "dirty": None if status is None else bool(status)}
 
 
+def process_seconds() -> float | None:
+    """Seconds since this process started (Linux ``/proc``: the interpreter's start, imports and device
+    initialisation included; 10 ms resolution), None where ``/proc`` cannot tell."""
+    try:
+        with open("/proc/self/stat") as stat:
+            fields = stat.read().rsplit(")", 1)[1].split()  # after the command name: field 3 (state) onwards
+        with open("/proc/uptime") as uptime:
+            since_boot = float(uptime.read().split()[0])
+        return max(0.0, since_boot - int(fields[19]) / os.sysconf("SC_CLK_TCK"))  # field 22: start, clock ticks
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def command_line(argv: list[str]) -> str:
     """``argv`` as a shell command; a script inside the lnnmpc package becomes ``python -m lnnmpc.<module>``."""
     if not argv:

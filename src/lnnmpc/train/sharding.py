@@ -52,6 +52,13 @@ class SeedPlacement:
         """Places (commits) a seed-batched pytree (host or device arrays) on the devices."""
         return jax.device_put(tree, self.sharding)
 
+    def abstract(self, jitted: Callable, *args):
+        """The result of ``jitted(*args)`` as ShapeDtypeStructs placed like :meth:`put` (nothing run or compiled):
+        example arguments for compiling, ahead of time, the programs that take that result."""
+        shapes = jax.eval_shape(jitted, *args)
+        return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=self.sharding,
+                                                            weak_type=s.weak_type), shapes)
+
     def compile(self, fn: Callable, *static, in_axes=0) -> Callable:
         """``jit(vmap(fn(..., *static)))`` over the seed axis; static arguments are bound, not traced."""
         batched = jax.vmap(functools.partial(_call_with_static, fn, static), in_axes=in_axes)

@@ -6,8 +6,9 @@
 Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds ×
 episodes, the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations.
 A run that has no evaluation at a step another run has gets an empty cell. Speed (from each ``timing.csv``, wall
-seconds): compilation, training chunks (total, count, environment steps per chunk per seed), the median chunk's
-environment steps per second over all seeds and per seed, evaluations (total, count) and everything logged.
+seconds): the process's start (imports, devices; runs since the trainer logs it), compilation, training chunks
+(total, count, environment steps per chunk per seed), the median chunk's environment steps per second over all
+seeds and per seed, evaluations (total, count) and everything logged.
 Commands: the command line that started each run (``config.json``'s provenance). These are the tables the READMEs
 under ``experiments/results/`` quote.
 """
@@ -69,7 +70,8 @@ def speed_row(run: str, seeds: int) -> dict:
     seconds = lambda phase: [float(r["seconds"]) for r in rows if r["phase"] == phase]  # noqa: E731
     chunks = [r for r in rows if r["phase"] == "train_chunk"]
     rate = float(np.median([float(r["env_steps_per_s_all_seeds"]) for r in chunks])) if chunks else float("nan")
-    return {"compile_s": sum(seconds("compile")), "chunks_s": sum(float(r["seconds"]) for r in chunks),
+    return {"startup_s": sum(seconds("startup")) if seconds("startup") else None,
+            "compile_s": sum(seconds("compile")), "chunks_s": sum(float(r["seconds"]) for r in chunks),
             "chunks": len(chunks),
             "chunk_steps": int(chunks[0]["env_steps_per_seed"]) if chunks else 0, "steps_per_s": rate,
             "steps_per_s_per_seed": rate / seeds, "evaluations_s": sum(seconds("evaluate")),
@@ -78,11 +80,12 @@ def speed_row(run: str, seeds: int) -> dict:
 
 def speed_table(curves: list[dict]) -> str:
     """The markdown table of the runs' speeds (``curves``: :func:`load_curves`; one row per run)."""
-    lines = ["| run | compile s | training chunks s | env steps/s, all seeds (median chunk) | per seed | "
-             "evaluations s | all s |", "|---|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| run | startup s | compile s | training chunks s | env steps/s, all seeds (median chunk) | per seed | "
+             "evaluations s | all s |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for curve in curves:
         s = speed_row(curve["run"], curve["config"]["config"]["seeds"])
-        lines.append(f"| {curve['label']} | {s['compile_s']:.1f} | {s['chunks_s']:,.1f} ({s['chunks']} × "
+        startup = "" if s["startup_s"] is None else f"{s['startup_s']:.1f}"
+        lines.append(f"| {curve['label']} | {startup} | {s['compile_s']:.1f} | {s['chunks_s']:,.1f} ({s['chunks']} × "
                      f"{s['chunk_steps']:,} steps) | {s['steps_per_s']:.0f} | {s['steps_per_s_per_seed']:.0f} | "
                      f"{s['evaluations_s']:.1f} ({s['evaluations']}) | {s['all_s']:,.0f} |")
     return "\n".join(lines)

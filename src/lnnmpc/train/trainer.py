@@ -15,6 +15,11 @@ configuration, so a resumed run computes exactly what the uninterrupted run woul
 resizes the chunks from the resume on: the training is the same (it does not depend on where chunks end), the
 evaluations and checkpoints may fall at other steps than in a run started with that budget.
 
+``timing.csv`` gives the wall seconds of each phase: ``startup`` (the process before the run's clock: Python,
+imports, devices, the checks above; Linux only), ``compile`` (the state's initialisation and every program, in
+parallel threads, where ``compile_ahead``), ``seed_phase``, ``update_burst``, ``train_chunk``, ``evaluate``,
+``checkpoint``; their sum is the process's time up to its last checkpoint.
+
 A NaN or Inf in a loss metric or in the agent's parameters stops the run with :class:`TrainingDiverged` naming the
 environment step, seed and metric; the newest checkpoint (written before the bad chunk) is kept as it is.
 """
@@ -42,7 +47,7 @@ from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkp
 from lnnmpc.train.compat import agent_config_json, check_agent_config, check_compatible, check_layout, state_signature
 from lnnmpc.train.config import ConfigError, TrainConfig
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
-from lnnmpc.train.provenance import provenance_entry
+from lnnmpc.train.provenance import process_seconds, provenance_entry
 from lnnmpc.train.sharding import SeedPlacement, compile_ahead, device_count_for
 
 MAX_CHUNK = 1000  # iterations per compiled training chunk
@@ -226,18 +231,23 @@ class _Run:
             [report.WandbLogger(self.run, self.config.wandb, self.config.to_dict())]
             if self.config.wandb else [])
 
-    def _compile_ahead(self) -> None:
-        """Compiles the programs the run will call (seed phase and update burst unless done, the training chunk,
-        the evaluation) in parallel before the first one runs."""
+    def _compile_ahead(self, keys: jax.Array, state, initialise: bool) -> None:
+        """Compiles the programs the run will call (the state's initialisation if ``initialise``, the seed phase
+        and update burst unless done, the training chunk, the evaluation) in parallel before the first one runs.
+        ``keys``: (seeds,) keys, placed; ``state``: the training state or its ``placement.abstract`` shapes (the
+        programs need its shapes and placement only, so nothing waits for the state to be built)."""
         c, names = self.config, []
         seed_iterations = self.setup.seed_iterations
         if not self.counters["seeded"] and seed_iterations:
             names += [("seed_chunk", seed_iterations), ("update_burst", seed_iterations * c.envs)]
         names.append(("train_chunk", self.setup.chunk))
-        keys = self.placement.put(jax.random.split(jax.random.key(0), c.seeds))
-        jobs = [(self._chunk_program(name, length), (self.ts,)) for name, length in names]
-        jobs.append((self.evaluate, (self.ts.agent, keys)))
-        *chunks, self.evaluate = compile_ahead(jobs)
+        jobs = [(self.init, (keys,))] if initialise else []
+        jobs += [(self._chunk_program(name, length), (state,)) for name, length in names]
+        jobs.append((self.evaluate, (state.agent, keys)))
+        compiled = compile_ahead(jobs)
+        if initialise:
+            self.init = compiled.pop(0)
+        *chunks, self.evaluate = compiled
         self._chunk_fns.update(dict(zip(names, chunks, strict=True)))
 
     def _chunk_program(self, name: str, length: int):
@@ -258,19 +268,23 @@ class _Run:
             "loop": dataclasses.asdict(self.loop.config), "devices": [d.device_kind for d in jax.devices()],
             "num_devices": self.setup.num_devices, "chunk": self.setup.chunk,
             "provenance": runfolder.read_provenance(self.run) + [provenance_entry()]})
-        keys = jax.random.split(jax.random.key(c.seed), c.seeds)
-        self.ts = self.init(self.placement.put(keys))
+        keys = self.placement.put(jax.random.split(jax.random.key(c.seed), c.seeds))
+        start, startup = time.perf_counter(), process_seconds()  # the run's time counts its compilation
+        state = self.placement.abstract(self.init, keys)  # shapes and placement of the training state
         self.counters["eval_key"] = _key_list(jax.random.key(c.seed + 10_000))
-        if self.setup.resume_step is not None:
-            self.ts, self.counters = restore_checkpoint(self.run, self.setup.resume_step, self.ts)
+        resumed = self.setup.resume_step is not None
+        if resumed:
+            self.ts, self.counters = restore_checkpoint(self.run, self.setup.resume_step, state)
             sys.stderr.write(f"resuming {self.run} at {self.counters['env_steps']:,} env steps\n")
         for name in ("train.csv", "eval.csv", TIMING_FILE):  # rows after the checkpoint (or all, starting afresh) go
-            runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if
-                                   self.setup.resume_step is not None else -1)
+            runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if resumed else -1)
+        if startup is not None:  # the process before the run's clock: Python, imports, devices, the checks
+            self._timing_row("startup", startup, 0)
         if c.compile_ahead == "on" or (c.compile_ahead == "auto" and (os.cpu_count() or 1) >= 4):
             with self._timed("compile"):
-                self._compile_ahead()
-        start = time.perf_counter()
+                self._compile_ahead(keys, state, initialise=not resumed)
+        if not resumed:
+            self.ts = self.init(keys)
         with _StopRequest() as stop:
             try:
                 self._schedule(stop)
@@ -374,11 +388,13 @@ class _Run:
         timing.csv; the body may set ``env_steps``. The first call of each compiled program includes compiling."""
         info, start = {"env_steps": 0}, time.perf_counter()
         yield info
-        seconds = time.perf_counter() - start
+        self._timing_row(phase, time.perf_counter() - start, info["env_steps"])
+
+    def _timing_row(self, phase: str, seconds: float, env_steps: int) -> None:
         runfolder.append_csv(os.path.join(self.run, TIMING_FILE), [{
             "env_step": self.counters["env_steps"], "phase": phase, "seconds": round(seconds, 4),
-            "env_steps_per_seed": info["env_steps"],
-            "env_steps_per_s_all_seeds": round(info["env_steps"] * self.config.seeds / max(seconds, 1e-9), 2)}])
+            "env_steps_per_seed": env_steps,
+            "env_steps_per_s_all_seeds": round(env_steps * self.config.seeds / max(seconds, 1e-9), 2)}])
 
     def _evaluate(self) -> None:
         with self._timed("evaluate"):
