@@ -11,9 +11,10 @@ import pytest
 
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, TrainConfig, incompatibilities, obs_tag, parse_obs, parse_overrides
+from lnnmpc.train.guard import first_non_finite
 from lnnmpc.train.references import references, variant
 from lnnmpc.train.sharding import device_count_for
-from lnnmpc.train.trainer import _first_non_finite, validate
+from lnnmpc.train.trainer import validate
 
 
 def test_parse_obs_and_overrides():
@@ -231,8 +232,8 @@ def test_first_non_finite_names_seed_iteration_and_metric():
     ok = np.zeros((2, 5))
     bad = ok.copy()
     bad[1, 3], bad[0, 4] = np.inf, np.nan
-    assert _first_non_finite({"reward": bad, "total_loss": ok}) is None
-    assert _first_non_finite({"total_loss": ok, "value_loss": bad}) == (1, 3, "value_loss")
+    assert first_non_finite({"reward": bad, "total_loss": ok}) is None
+    assert first_non_finite({"total_loss": ok, "value_loss": bad}) == (1, 3, "value_loss")
 
 
 def test_reference_lines_from_the_thesis():

@@ -30,9 +30,7 @@ import contextlib
 import dataclasses
 import math
 import os
-import signal
 import sys
-import threading
 import time
 
 import jax
@@ -46,6 +44,7 @@ from lnnmpc.train import report, runfolder, schedule
 from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
 from lnnmpc.train.compat import agent_config_json, check_agent_config, check_compatible, check_layout, state_signature
 from lnnmpc.train.config import ConfigError, TrainConfig
+from lnnmpc.train.guard import StopRequest, all_finite, first_non_finite
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.provenance import process_seconds, provenance_entry
 from lnnmpc.train.sharding import SeedPlacement, compile_ahead, device_count_for
@@ -189,29 +188,6 @@ def train(config: TrainConfig | None = None, *, resume: str | None = None, steps
     return _Run(setup).execute()
 
 
-class _StopRequest:
-    """Turns the first SIGINT/SIGTERM into a flag checked between chunks; a second SIGINT aborts at once."""
-
-    def __init__(self):
-        self.requested, self._previous = None, {}
-
-    def __enter__(self):
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._previous[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum, frame):
-        self.requested = signal.Signals(signum).name
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        sys.stderr.write(f"\n{self.requested}: saving a checkpoint after the running chunk "
-                         "(Ctrl-C again aborts without saving)\n")
-
-    def __exit__(self, *exc):
-        for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
-
-
 class _Run:
     """Host-side driver of one run (state between chunks, counters, files)."""
 
@@ -221,7 +197,7 @@ class _Run:
         compile_ = self.placement.compile
         self.init = compile_(self.loop.init)
         self.evaluate = compile_(self.loop.evaluate_with_rank)
-        self.finite = compile_(_all_finite)
+        self.finite = compile_(all_finite)
         self._chunk_fns = {}
         self.counters = {"env_steps": 0, "next_eval": self.config.eval_every, "last_eval": -1,
                          "next_checkpoint": self.config.checkpoint_every, "last_checkpoint": -1, "seeded": False,
@@ -285,7 +261,7 @@ class _Run:
                 self._compile_ahead(keys, state, initialise=not resumed)
         if not resumed:
             self.ts = self.init(keys)
-        with _StopRequest() as stop:
+        with StopRequest() as stop:
             try:
                 self._schedule(stop)
             finally:
@@ -296,7 +272,7 @@ class _Run:
         sys.stderr.write(f"\nrun folder: {self.run}\n")
         return self.run
 
-    def _schedule(self, stop: _StopRequest) -> None:
+    def _schedule(self, stop: StopRequest) -> None:
         c, n = self.config, self.counters
         if not n["seeded"]:
             seed_iterations = self.setup.seed_iterations
@@ -360,7 +336,7 @@ class _Run:
     def _commit(self, ts, rows: list[dict], metrics: dict, first_step: int | None) -> None:
         """Accepts a chunk's state after checking losses and parameters for NaN/Inf (``first_step``: env step
         before the chunk; None for the update burst after the seed phase)."""
-        bad = _first_non_finite(metrics)
+        bad = first_non_finite(metrics)
         finite_params = np.asarray(self.finite(ts.agent))
         if bad is None and not finite_params.all():
             bad = (int(np.argmin(finite_params)), -1, "agent parameters / optimiser state")
@@ -427,24 +403,3 @@ class _Run:
 
 def _key_list(key: jax.Array) -> list[int]:
     return np.asarray(jax.random.key_data(key)).tolist()
-
-
-def _all_finite(tree) -> jax.Array:
-    leaves = [x for x in jax.tree_util.tree_leaves(tree) if jnp.issubdtype(x.dtype, jnp.inexact)]
-    return jnp.all(jnp.asarray([jnp.all(jnp.isfinite(x)) for x in leaves]))
-
-
-def _first_non_finite(metrics: dict) -> tuple[int, int, str] | None:
-    """(seed, iteration, metric) of the first NaN/Inf among per-iteration metrics (seeds, iterations), or None."""
-    first = None
-    for name, values in metrics.items():
-        if name in ("reward", "episode_return"):
-            continue
-        values = np.asarray(values)
-        bad = ~np.isfinite(values.reshape(values.shape[0], values.shape[1], -1)).all(axis=2)
-        if bad.any():
-            where = np.argwhere(bad)  # (n, 2) rows of (seed, iteration)
-            seed, index = where[np.argmin(where[:, 1])]
-            if first is None or index < first[1]:
-                first = (int(seed), int(index), name)
-    return first
