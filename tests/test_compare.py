@@ -160,3 +160,22 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
     out = capsys.readouterr().out
     assert out.startswith("| env steps | A: mean") and "| run | startup s | compile s |" in out
     assert out.rstrip().endswith("```")
+
+
+def test_reports_without_plots_rewrite_only_the_summary(tmp_path):
+    from lnnmpc.train import report
+
+    a = _run(tmp_path / "a", "tdmpc2", {10000: [[100.0, 300.0]], 20000: [[600.0, 700.0]]})
+    rows = [{"env_step": 1000 * k, "seed": 0, "episode_return": 10.0 * k, "total_loss": 1.0 / k} for k in (1, 2, 3)]
+    runfolder.write_csv(os.path.join(a, "train.csv"), list(rows[0]), rows)
+    report.write_reports(a, {"env_steps": 20000, "train_seconds": 60.0})
+    figures = [os.path.join(a, name) for name in ("curve.png", "training.png")]
+    assert all(os.path.getsize(f) > 10_000 for f in figures)
+    assert "Training time (this machine, incl. compilation): 1.0 min." in open(os.path.join(a, "summary.md")).read()
+    for f in figures:
+        os.remove(f)
+    report.write_reports(a, {"env_steps": 20000, "train_seconds": 120.0}, plots=False)  # the trainer's last call
+    assert not any(os.path.exists(f) for f in figures)
+    summary = open(os.path.join(a, "summary.md")).read()
+    assert "1.0 min." not in summary and "Training time (this machine, incl. compilation): 2.0 min." in summary
+    assert "**Final return 650.0" in summary

@@ -127,7 +127,7 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     assert (reference / "training.png").stat().st_size > 10_000
     timing = _rows(reference / "timing.csv")
     phases = [r["phase"] for r in timing]
-    assert phases[:4] == ["startup", "compile", "seed_phase", "update_burst"]
+    assert phases[:5] == ["startup", "compile", "initialise", "seed_phase", "update_burst"]
     startup = float(timing[0]["seconds"])  # the process before the run's clock: Python, imports, checks
     assert 0.5 < startup < 300
     assert {"train_chunk", "evaluate", "checkpoint"} <= set(phases)

@@ -231,25 +231,26 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
     return "\n".join(lines) + "\n"
 
 
-def write_reports(run: str, extra: dict | None = None) -> None:
-    """(Re)writes curve.png and training.png (if matplotlib is installed) and summary.md from the run folder's
-    files."""
+def write_reports(run: str, extra: dict | None = None, plots: bool = True) -> None:
+    """(Re)writes curve.png and training.png (if matplotlib is installed and ``plots``) and summary.md from the run
+    folder's files."""
     config = runfolder.read_config(run)
     c = config["config"]
     eval_rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
     table = eval_table(eval_rows)
     refs = references(c["task"], c["agent"], c["eval_obs"])
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        sys.stderr.write("matplotlib is not installed: no curve.png\n")
-    else:
+    if plots:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:
+            sys.stderr.write("matplotlib is not installed: no curve.png\n")
+            plots = False
+    if plots:
         if table:
             plot_curve(run, table, refs, f"{c['task']} · {c['agent']}")
         plot_training(run, runfolder.read_csv(os.path.join(run, "train.csv")), f"{c['task']} · {c['agent']}",
                       eval_rows)
-    with open(os.path.join(run, "summary.md"), "w") as f:
-        f.write(summary_text(run, config, table, refs, extra or {}))
+    runfolder.write_text(os.path.join(run, "summary.md"), summary_text(run, config, table, refs, extra or {}))
 
 
 def eval_scalars(rows: list[dict]) -> dict[str, float]:

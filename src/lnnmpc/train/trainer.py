@@ -16,9 +16,10 @@ resizes the chunks from the resume on: the training is the same (it does not dep
 evaluations and checkpoints may fall at other steps than in a run started with that budget.
 
 ``timing.csv`` gives the wall seconds of each phase: ``startup`` (the process before the run's clock: Python,
-imports, devices, the checks above; Linux only), ``compile`` (the state's initialisation and every program, in
-parallel threads, where ``compile_ahead``), ``seed_phase``, ``update_burst``, ``train_chunk``, ``evaluate``,
-``checkpoint``; their sum is the process's time up to its last checkpoint.
+imports, devices, the checks above, restoring a checkpoint; Linux only), ``compile`` (every program, in parallel
+threads, where ``compile_ahead``), ``initialise`` (the new state; its compilation too where not compiled ahead),
+``seed_phase``, ``update_burst``, ``train_chunk``, ``evaluate``, ``checkpoint``; their sum is the process's time
+up to its last checkpoint, less the host's bookkeeping between chunks.
 
 A NaN or Inf in a loss metric or in the agent's parameters stops the run with :class:`TrainingDiverged` naming the
 environment step, seed and metric; the newest checkpoint (written before the bad chunk) is kept as it is.
@@ -209,7 +210,8 @@ class _Run:
 
     def _compile_ahead(self, keys: jax.Array, state, initialise: bool) -> None:
         """Compiles the programs the run will call (the state's initialisation if ``initialise``, the seed phase
-        and update burst unless done, the training chunk, the evaluation) in parallel before the first one runs.
+        and update burst unless done, the training chunk, the evaluation, the parameters' finiteness check) in
+        parallel before the first one runs.
         ``keys``: (seeds,) keys, placed; ``state``: the training state or its ``placement.abstract`` shapes (the
         programs need its shapes and placement only, so nothing waits for the state to be built)."""
         c, names = self.config, []
@@ -219,11 +221,11 @@ class _Run:
         names.append(("train_chunk", self.setup.chunk))
         jobs = [(self.init, (keys,))] if initialise else []
         jobs += [(self._chunk_program(name, length), (state,)) for name, length in names]
-        jobs.append((self.evaluate, (state.agent, keys)))
+        jobs += [(self.evaluate, (state.agent, keys)), (self.finite, (state.agent,))]
         compiled = compile_ahead(jobs)
         if initialise:
             self.init = compiled.pop(0)
-        *chunks, self.evaluate = compiled
+        *chunks, self.evaluate, self.finite = compiled
         self._chunk_fns.update(dict(zip(names, chunks, strict=True)))
 
     def _chunk_program(self, name: str, length: int):
@@ -245,7 +247,6 @@ class _Run:
             "num_devices": self.setup.num_devices, "chunk": self.setup.chunk,
             "provenance": runfolder.read_provenance(self.run) + [provenance_entry()]})
         keys = self.placement.put(jax.random.split(jax.random.key(c.seed), c.seeds))
-        start, startup = time.perf_counter(), process_seconds()  # the run's time counts its compilation
         state = self.placement.abstract(self.init, keys)  # shapes and placement of the training state
         self.counters["eval_key"] = _key_list(jax.random.key(c.seed + 10_000))
         resumed = self.setup.resume_step is not None
@@ -254,13 +255,15 @@ class _Run:
             sys.stderr.write(f"resuming {self.run} at {self.counters['env_steps']:,} env steps\n")
         for name in ("train.csv", "eval.csv", TIMING_FILE):  # rows after the checkpoint (or all, starting afresh) go
             runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if resumed else -1)
-        if startup is not None:  # the process before the run's clock: Python, imports, devices, the checks
+        start, startup = time.perf_counter(), process_seconds()  # the run's clock counts its compilation
+        if startup is not None:  # the process before the run's clock: Python, imports, devices, checks, restoring
             self._timing_row("startup", startup, 0)
         if c.compile_ahead == "on" or (c.compile_ahead == "auto" and (os.cpu_count() or 1) >= 4):
             with self._timed("compile"):
                 self._compile_ahead(keys, state, initialise=not resumed)
         if not resumed:
-            self.ts = self.init(keys)
+            with self._timed("initialise"):  # (its compilation too, where not compiled ahead)
+                self.ts = jax.block_until_ready(self.init(keys))
         with StopRequest() as stop:
             try:
                 self._schedule(stop)
@@ -268,7 +271,8 @@ class _Run:
                 self.counters["train_seconds"] += time.perf_counter() - start
                 for logger in self.loggers:
                     logger.close()
-        report.write_reports(self.run, self.counters)
+        # the last evaluation plotted the finished run already; summary.md gains the time and the last checkpoint
+        report.write_reports(self.run, self.counters, plots=self.counters["last_eval"] != self.counters["env_steps"])
         sys.stderr.write(f"\nrun folder: {self.run}\n")
         return self.run
 
