@@ -298,6 +298,10 @@ def test_device_batch_after_runs_a_command_once_its_job_has_ended(tmp_path):
 
     assert run("start", str(jobs), "60", "5").returncode == 0
     assert wait_for(batch / "a.rc", "3").strip() == "3"  # the job's exit status
+    assert 0 <= float((batch / "a.seconds").read_text()) < 60  # and its wall time, launch to exit
+    report = run("wait", "0")
+    assert report.returncode == 0 and f"ended (exit 3) {(batch / 'a.seconds').read_text().strip()} s after" in (
+        report.stdout)
     # a job still running: the command waits for its .rc
     with open(batch / "commands.txt", "a") as f:
         f.write("b (GPU 1): --task cartpole-balance\n")

@@ -21,7 +21,8 @@
 # A run stopped by its timeout saves a checkpoint after its running chunk (SIGTERM), so what it measured is kept;
 # a study stopped so then evaluates and aggregates its newest checkpoints (--no-train, under EVAL_SECONDS, default
 # 300 more seconds), so a study line yields its table's cells (at the step reached) even when cut short.
-# Each report prints every run's progress line and packs the run folders without checkpoints, the logs and
+# Each report prints every run's progress line (and, for a job that has ended, its exit status and its wall seconds
+# from launch to exit, kept in runs/batch/NAME.seconds) and packs the run folders without checkpoints, the logs and
 # nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
 # On a machine of several GPUs each job gets one GPU (CUDA_VISIBLE_DEVICES): "<name>@<k>" pins a line to GPU k
 # (k mod the machine's count, so a two-GPU file still runs on one GPU), the other lines are dealt out round robin
@@ -108,6 +109,8 @@ report_after() {
     for log in "$BATCH"/*.log; do
         printf '%-34s %s\n' "$(basename "$log" .log)" "$(tr '\r' '\n' <"$log" | grep '^\[' | tail -1 | cut -c1-110)"
         tr '\r' '\n' <"$log" | grep -v -E '^\s*$|^\[' | tail -1 | cut -c1-150
+        local ended=${log%.log}
+        [ -f "$ended.seconds" ] && echo "ended (exit $(cat "$ended.rc" 2>/dev/null)) $(cat "$ended.seconds") s after its launch"
     done
     grep -l -E "Traceback|Error" "$BATCH"/*.log 2>/dev/null | while read -r bad; do
         echo "--- $bad"; tail -15 "$bad"; done
@@ -161,7 +164,10 @@ start)
         else
             command="timeout -s TERM $seconds $command"
         fi
-        command="$command; echo \$? >$BATCH/$name.rc"  # the job's end, for `after`
+        # the job's end (NAME.rc, for `after`) and its wall seconds from launch to exit (NAME.seconds: a speed
+        # bar's "including compilation", the process's start and exit included)
+        took="echo \"\$(date +%s.%N) \$begun\" | awk '{printf \"%.1f\\n\", \$1 - \$2}' >$BATCH/$name.seconds"
+        command="begun=\$(date +%s.%N); $command; rc=\$?; $took; echo \$rc >$BATCH/$name.rc"
         visible=$gpu
         [ "$gpu" = all ] && visible=$(seq -s, 0 $((gpus - 1)))
         CUDA_VISIBLE_DEVICES=$visible setsid nohup bash -c "$command" >"$BATCH/$name.log" 2>&1 </dev/null &
