@@ -46,3 +46,22 @@ def test_keeps_the_newest_checkpoints_and_restores_into_abstract_targets(tmp_pat
     np.testing.assert_array_equal(state["w"], np.full((3, 4), 3.0))
     assert state["empty"].shape == (0, 2)
     np.testing.assert_array_equal(jax.random.key_data(state["key"]), jax.random.key_data(jax.random.key(3)))
+
+
+def test_abstract_targets_keep_their_sharding_keys_included(tmp_path):
+    """A resumed sharded run restores into its state's abstract shapes (``SeedPlacement.abstract``): every leaf,
+    PRNG keys included, must come back with the target's sharding (a default-device array is refused by the
+    sharded programs)."""
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    run = str(tmp_path)
+    state = {"w": jnp.arange(8.0).reshape(2, 4), "key": jax.random.split(jax.random.key(5), 2),
+             "empty": jnp.zeros((2, 0))}
+    save_checkpoint(run, 1, state, {"env_steps": 1})
+    sharding = NamedSharding(Mesh(np.asarray(jax.devices()[:1]), ("seeds",)), PartitionSpec("seeds"))
+    abstract = jax.tree_util.tree_map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=sharding),
+                                      jax.eval_shape(lambda: state))
+    restored, _ = restore_checkpoint(run, 1, abstract)
+    assert {name: leaf.sharding for name, leaf in restored.items()} == dict.fromkeys(state, sharding)
+    np.testing.assert_array_equal(restored["w"], state["w"])
+    np.testing.assert_array_equal(jax.random.key_data(restored["key"]), jax.random.key_data(state["key"]))

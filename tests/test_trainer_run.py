@@ -177,7 +177,8 @@ def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_
     one; evaluation returns are not compared, MPPI amplifies such differences). The environment amplifies it too:
     under the tests' XLA level 1 (conftest) a pole velocity in the replay drifted by 4.4e-5 after ~190 steps, hence
     2e-4 (with the current CONFIG the largest difference is 5.9e-6, in the replay's observations, 3% of the
-    tolerance); a sharding mistake (a seed's keys, states or data swapped or shared) differs by O(1)."""
+    tolerance); a sharding mistake (a seed's keys, states or data swapped or shared) differs by O(1). Then the
+    sharded run resumes to the next checkpoint, its state restored into the sharded placement."""
     import json
 
     import jax
@@ -200,6 +201,13 @@ def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_
         for x, y in zip(floats(getattr(one, part)), floats(getattr(two, part)), strict=True):
             np.testing.assert_allclose(x, y, atol=2e-4, rtol=2e-4, err_msg=part)
     assert len(_rows(run / "eval.csv")) == 4
+    # resumed, sharded again: its checkpoint restored straight into the sharded programs' placement
+    result = _run(["train", "--resume", str(run), "--steps", str(CHECKPOINTS[1])], cache,
+                  XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert _steps(run) == CHECKPOINTS[:2] and "refused its arguments" not in result.stderr
+    assert {(int(r["env_step"]), int(r["seed"])) for r in _rows(run / "eval.csv")} == {
+        (step, seed) for step in CHECKPOINTS[:2] for seed in (0, 1)}
 
 
 def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(reference, tmp_path, monkeypatch, cache):

@@ -27,6 +27,14 @@ def _to_raw(tree: Any) -> Any:
     return jax.tree_util.tree_map(lambda x: jax.random.key_data(x) if _is_key(x) else x, tree)
 
 
+def _raw_abstract(x: Any) -> Any:
+    """An abstract leaf as :func:`_to_raw` stores it (a key's data for a key), keeping its sharding."""
+    if not _is_key(x):
+        return x
+    data = jax.eval_shape(jax.random.key_data, x)
+    return jax.ShapeDtypeStruct(data.shape, data.dtype, sharding=x.sharding)
+
+
 def _abstract(x: Any) -> jax.ShapeDtypeStruct:
     """Shape, dtype and sharding to restore a leaf into (abstract leaves go to the default device)."""
     if not isinstance(x, jax.ShapeDtypeStruct):
@@ -86,7 +94,7 @@ def restore_checkpoint(run: str, step: int, like: Any) -> tuple[Any, dict]:
     """Restores checkpoint ``step`` into the structure, shapes, dtypes (and shardings) of ``like``, a pytree of
     arrays or of ``jax.ShapeDtypeStruct`` (e.g. from ``jax.eval_shape``); returns (state, host)."""
     raw_like = _to_raw(like) if all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(like)) else (
-        jax.eval_shape(_to_raw, like))
+        jax.tree_util.tree_map(_raw_abstract, like))
     abstract = jax.tree_util.tree_map(_abstract, _payload(raw_like))
     with _manager(run) as manager:
         restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
