@@ -244,12 +244,11 @@ def write_reports(run: str, extra: dict | None = None, plots: bool = True) -> No
             import matplotlib  # noqa: F401
         except ImportError:
             sys.stderr.write("matplotlib is not installed: no curve.png\n")
-            plots = False
-    if plots:
-        if table:
-            plot_curve(run, table, refs, f"{c['task']} · {c['agent']}")
-        plot_training(run, runfolder.read_csv(os.path.join(run, "train.csv")), f"{c['task']} · {c['agent']}",
-                      eval_rows)
+        else:
+            if table:
+                plot_curve(run, table, refs, f"{c['task']} · {c['agent']}")
+            plot_training(run, runfolder.read_csv(os.path.join(run, "train.csv")), f"{c['task']} · {c['agent']}",
+                          eval_rows)
     runfolder.write_text(os.path.join(run, "summary.md"), summary_text(run, config, table, refs, extra or {}))
 
 
