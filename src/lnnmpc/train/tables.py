@@ -70,12 +70,13 @@ def speed_row(run: str, seeds: int) -> dict:
     seconds = lambda phase: [float(r["seconds"]) for r in rows if r["phase"] == phase]  # noqa: E731
     chunks = [r for r in rows if r["phase"] == "train_chunk"]
     rate = float(np.median([float(r["env_steps_per_s_all_seeds"]) for r in chunks])) if chunks else float("nan")
-    return {"startup_s": sum(seconds("startup")) if seconds("startup") else None,
-            "compile_s": sum(seconds("compile")), "chunks_s": sum(float(r["seconds"]) for r in chunks),
+    startup, evaluations = seconds("startup"), seconds("evaluate")  # runs before the startup row have none
+    return {"startup_s": sum(startup) if startup else None, "compile_s": sum(seconds("compile")),
+            "chunks_s": sum(float(r["seconds"]) for r in chunks),
             "chunks": len(chunks),
             "chunk_steps": int(chunks[0]["env_steps_per_seed"]) if chunks else 0, "steps_per_s": rate,
-            "steps_per_s_per_seed": rate / seeds, "evaluations_s": sum(seconds("evaluate")),
-            "evaluations": len(seconds("evaluate")), "all_s": sum(float(r["seconds"]) for r in rows)}
+            "steps_per_s_per_seed": rate / seeds, "evaluations_s": sum(evaluations),
+            "evaluations": len(evaluations), "all_s": sum(float(r["seconds"]) for r in rows)}
 
 
 def speed_table(curves: list[dict]) -> str:
