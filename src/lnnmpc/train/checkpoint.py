@@ -28,7 +28,8 @@ def _to_raw(tree: Any) -> Any:
 
 
 def _raw_abstract(x: Any) -> Any:
-    """An abstract leaf as :func:`_to_raw` stores it (a key's data for a key), keeping its sharding."""
+    """A restore target's leaf (array or abstract) as :func:`_to_raw` stores it: for a key, its data's shape and
+    dtype with the key's sharding; any other leaf as it is."""
     if not _is_key(x):
         return x
     data = jax.eval_shape(jax.random.key_data, x)
@@ -93,8 +94,7 @@ def all_steps(run: str) -> list[int]:
 def restore_checkpoint(run: str, step: int, like: Any) -> tuple[Any, dict]:
     """Restores checkpoint ``step`` into the structure, shapes, dtypes (and shardings) of ``like``, a pytree of
     arrays or of ``jax.ShapeDtypeStruct`` (e.g. from ``jax.eval_shape``); returns (state, host)."""
-    raw_like = _to_raw(like) if all(isinstance(x, jax.Array) for x in jax.tree_util.tree_leaves(like)) else (
-        jax.tree_util.tree_map(_raw_abstract, like))
+    raw_like = jax.tree_util.tree_map(_raw_abstract, like)
     abstract = jax.tree_util.tree_map(_abstract, _payload(raw_like))
     with _manager(run) as manager:
         restored = manager.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract),
