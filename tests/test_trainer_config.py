@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import time
 
 import numpy as np
 import pytest
@@ -83,8 +84,13 @@ def test_programs_compiled_ahead_in_parallel_run_and_fall_back_on_other_argument
     from lnnmpc.train.sharding import compile_ahead
 
     double, total = jax.jit(lambda x: 2 * x), jax.jit(lambda x, y: (x * y).sum())
-    first, second = compile_ahead([(double, (jnp.ones(3),)), (total, (jnp.ones(3), jnp.ones(3)))])
-    assert first.compiled is not None and second.compiled is not None
+    done = []
+    first, second = compile_ahead([(double, (jnp.ones(3),)), (total, (jnp.ones(3), jnp.ones(3)))],
+                                  on_done=lambda index, program: done.append((index, program)))
+    assert second.ready().compiled is not None and first.ready().compiled is not None  # waits for the threads
+    assert sorted(index for index, _ in done) == [0, 1] and {id(p) for _, p in done} == {id(first), id(second)}
+    for program in (first, second):
+        assert program.lower_s > 0 and program.compile_s > 0 and program.done_at <= time.perf_counter()
     np.testing.assert_array_equal(first(jnp.arange(3.0)), [0.0, 2.0, 4.0])
     assert float(second(jnp.arange(3.0), jnp.full(3, 2.0))) == 6.0
     assert first.compiled is not None  # the ahead-of-time executable ran

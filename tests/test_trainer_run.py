@@ -135,6 +135,14 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     assert all(int(r["env_steps_per_seed"]) > 0 and float(r["env_steps_per_s_all_seeds"]) > 0 for r in chunks)
     seeded = next(int(r["env_steps_per_seed"]) for r in timing if r["phase"] == "seed_phase")
     assert sum(int(r["env_steps_per_seed"]) for r in chunks) + seeded == steps[-1]
+    # compile.csv: every program compiled ahead, the training chunk's lowered first; the compile phase waited for
+    # all but the evaluation's (ready_s counts from that phase's start, so lowering and compiling fit inside it)
+    compiled = _rows(reference / "compile.csv")
+    assert {r["program"] for r in compiled} == {"train_chunk", "seed_chunk", "update_burst", "init", "finite",
+                                                "evaluate"} and len(compiled) == 6
+    assert all(float(r["ready_s"]) >= float(r["compile_s"]) > 0 and float(r["lower_s"]) > 0 for r in compiled)
+    compile_phase = float(timing[1]["seconds"])
+    assert all(float(r["ready_s"]) <= compile_phase for r in compiled if r["program"] != "evaluate")
 
 
 def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp_path, cache):

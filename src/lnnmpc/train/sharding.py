@@ -15,8 +15,9 @@ from __future__ import annotations
 
 import functools
 import sys
+import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 
 import jax
 import numpy as np
@@ -74,15 +75,25 @@ def _call_with_static(fn, static, *args):
 class AheadOfTime:
     """A jitted function with an executable compiled ahead of time for one set of example arguments.
 
-    Calls run the executable; arguments it was not compiled for (another shape, dtype or placement: a
-    :class:`jax.stages.Compiled` refuses them with TypeError/ValueError) fall back to the jitted function for
-    good, which compiles as usual. Both run the same program, so results do not depend on which one ran."""
+    ``compiled`` is the executable or a future of it (:func:`compile_ahead` compiles in the background): the first
+    call waits for it (:meth:`ready` waits without calling). Calls run the executable; arguments it was not compiled
+    for (another shape, dtype or placement: a :class:`jax.stages.Compiled` refuses them with TypeError/ValueError)
+    fall back to the jitted function for good, which compiles as usual. Both run the same program, so results do
+    not depend on which one ran. ``lower_s`` / ``compile_s``: seconds spent lowering (tracing included) and
+    compiling it, ``done_at``: ``time.perf_counter()`` when its compilation ended (None until then)."""
 
-    def __init__(self, jitted: Callable, compiled=None):
-        self.jitted, self.compiled = jitted, compiled
+    def __init__(self, jitted: Callable, compiled=None, lower_s: float = 0.0):
+        self.jitted, self.compiled, self.lower_s = jitted, compiled, lower_s
+        self.compile_s, self.done_at = 0.0, None
+
+    def ready(self) -> AheadOfTime:
+        """Waits for the background compilation, if any (its errors are raised here); returns self."""
+        if isinstance(self.compiled, Future):
+            self.compiled = self.compiled.result()
+        return self
 
     def __call__(self, *args):
-        if self.compiled is not None:
+        if self.ready().compiled is not None:
             try:
                 return self.compiled(*args)
             except (TypeError, ValueError) as error:
@@ -92,15 +103,37 @@ class AheadOfTime:
         return self.jitted(*args)
 
 
-def compile_ahead(jobs: list[tuple[Callable, tuple]]) -> list[AheadOfTime]:
-    """Compiles every ``(jitted, example_args)`` job at once, in threads (XLA compiles without the GIL, so
-    several programs build in parallel on a machine with several cores: the trainer's seed phase, update burst,
-    training chunk and evaluation programs then cost about the slowest one's time instead of the sum).
+def compile_ahead(jobs: list[tuple[Callable, tuple]],
+                  on_done: Callable[[int, AheadOfTime], None] | None = None) -> list[AheadOfTime]:
+    """Starts compiling every ``(jitted, example_args)`` job at once, in threads, and returns without waiting
+    (XLA compiles without the GIL, so several programs build in parallel on a machine with several cores: the
+    trainer's seed phase, update burst, training chunk and evaluation programs then cost about the slowest one's
+    time instead of the sum). Each returned :class:`AheadOfTime` waits for its own program when first called, so a
+    program needed later (an evaluation) finishes compiling while the first ones run. ``on_done(index, program)``
+    is called from the compiling thread as each compilation ends (its timings set).
 
-    The programs are traced and lowered one after the other on this thread, each handed to a compiling thread as
-    soon as it is lowered. Traced concurrently in threads, JAX can lay out shared inner functions differently: the
-    same computation, but other programs for XLA's persistent compilation cache, which a resumed run or an
-    evaluation (jitted one at a time) then misses and compiles again."""
-    with ThreadPoolExecutor(max_workers=max(1, len(jobs))) as pool:
-        futures = [pool.submit(jitted.lower(*args).compile) for jitted, args in jobs]
-        return [AheadOfTime(jitted, future.result()) for (jitted, _), future in zip(jobs, futures, strict=True)]
+    The programs are traced and lowered one after the other on this thread, in the order given (put the one that
+    takes longest to compile first), each handed to a compiling thread as soon as it is lowered. Traced
+    concurrently in threads, JAX can lay out shared inner functions differently: the same computation, but other
+    programs for XLA's persistent compilation cache, which a resumed run or an evaluation (jitted one at a time)
+    then misses and compiles again."""
+    pool = ThreadPoolExecutor(max_workers=max(1, len(jobs)), thread_name_prefix="compile-ahead")
+    programs = []
+    for index, (jitted, args) in enumerate(jobs):
+        start = time.perf_counter()
+        lowered = jitted.lower(*args)
+        program = AheadOfTime(jitted, lower_s=time.perf_counter() - start)
+        program.compiled = pool.submit(_compile, lowered, program, index, on_done)
+        programs.append(program)
+    pool.shutdown(wait=False)  # the threads end with their compilations
+    return programs
+
+
+def _compile(lowered, program: AheadOfTime, index: int, on_done):
+    start = time.perf_counter()
+    compiled = lowered.compile()
+    program.done_at = time.perf_counter()
+    program.compile_s = program.done_at - start
+    if on_done is not None:
+        on_done(index, program)
+    return compiled

@@ -16,8 +16,9 @@ resizes the chunks from the resume on: the training is the same (it does not dep
 evaluations and checkpoints may fall at other steps than in a run started with that budget.
 
 ``timing.csv`` gives the wall seconds of each phase: ``startup`` (the process before the run's clock: Python,
-imports, devices, the checks above, restoring a checkpoint; Linux only), ``compile`` (every program, in parallel
-threads, where ``compile_ahead``), ``initialise`` (the new state; its compilation too where not compiled ahead),
+imports, devices, the checks above, restoring a checkpoint; Linux only), ``compile`` (the programs, in parallel
+threads, where ``compile_ahead``; the evaluation's finishes while the first chunks run, ``compile.csv`` gives each
+program's seconds), ``initialise`` (the new state; its compilation too where not compiled ahead),
 ``seed_phase``, ``update_burst``, ``train_chunk``, ``evaluate``, ``checkpoint``; their sum is the process's time
 up to its last checkpoint, less the host's bookkeeping between chunks.
 
@@ -32,6 +33,7 @@ import dataclasses
 import math
 import os
 import sys
+import threading
 import time
 
 import jax
@@ -52,6 +54,7 @@ from lnnmpc.train.sharding import SeedPlacement, compile_ahead, device_count_for
 
 MAX_CHUNK = 1000  # iterations per compiled training chunk
 TIMING_FILE = "timing.csv"  # wall seconds of each phase (kept apart from train.csv, which is deterministic)
+COMPILE_FILE = "compile.csv"  # seconds to lower and compile each program compiled ahead
 
 
 class TrainingDiverged(RuntimeError):
@@ -209,24 +212,36 @@ class _Run:
             if self.config.wandb else [])
 
     def _compile_ahead(self, keys: jax.Array, state, initialise: bool) -> None:
-        """Compiles the programs the run will call (the state's initialisation if ``initialise``, the seed phase
-        and update burst unless done, the training chunk, the evaluation, the parameters' finiteness check) in
-        parallel before the first one runs.
+        """Compiles the programs the run will call (the training chunk, the seed phase and update burst unless
+        done, the state's initialisation if ``initialise``, the parameters' finiteness check, the evaluation) in
+        parallel, the training chunk's (the longest to compile) lowered first, and waits for all but the
+        evaluation's, which goes on compiling while the first chunks run. compile.csv gets each program's lowering
+        and compilation seconds, and when it was ready after this phase began, as each compilation ends.
         ``keys``: (seeds,) keys, placed; ``state``: the training state or its ``placement.abstract`` shapes (the
         programs need its shapes and placement only, so nothing waits for the state to be built)."""
-        c, names = self.config, []
+        c, names = self.config, [("train_chunk", self.setup.chunk)]
         seed_iterations = self.setup.seed_iterations
         if not self.counters["seeded"] and seed_iterations:
             names += [("seed_chunk", seed_iterations), ("update_burst", seed_iterations * c.envs)]
-        names.append(("train_chunk", self.setup.chunk))
-        jobs = [(self.init, (keys,))] if initialise else []
-        jobs += [(self._chunk_program(name, length), (state,)) for name, length in names]
-        jobs += [(self.evaluate, (state.agent, keys)), (self.finite, (state.agent,))]
-        compiled = compile_ahead(jobs)
-        if initialise:
-            self.init = compiled.pop(0)
-        *chunks, self.evaluate, self.finite = compiled
-        self._chunk_fns.update(dict(zip(names, chunks, strict=True)))
+        jobs = [(name, self._chunk_program(name, length), (state,)) for name, length in names]
+        jobs += [("init", self.init, (keys,))] if initialise else []
+        jobs += [("finite", self.finite, (state.agent,)), ("evaluate", self.evaluate, (state.agent, keys))]
+        start, lock, env_step = time.perf_counter(), threading.Lock(), self.counters["env_steps"]
+
+        def written(index: int, program) -> None:  # in the compiling thread
+            with lock:
+                runfolder.append_csv(os.path.join(self.run, COMPILE_FILE), [{
+                    "env_step": env_step, "program": jobs[index][0], "lower_s": round(program.lower_s, 4),
+                    "compile_s": round(program.compile_s, 4), "ready_s": round(program.done_at - start, 4)}])
+
+        programs = dict(zip([name for name, _, _ in jobs],
+                            compile_ahead([job[1:] for job in jobs], on_done=written), strict=True))
+        self.evaluate = programs.pop("evaluate")  # its first call waits for it
+        for program in programs.values():
+            program.ready()
+        self.init = programs.pop("init", self.init)
+        self.finite = programs.pop("finite")
+        self._chunk_fns.update({(name, length): programs[name] for name, length in names})
 
     def _chunk_program(self, name: str, length: int):
         """``loop.<name>(ts, length)`` over seeds, jitted (compiled on the first call)."""
@@ -253,7 +268,7 @@ class _Run:
         if resumed:
             self.ts, self.counters = restore_checkpoint(self.run, self.setup.resume_step, state)
             sys.stderr.write(f"resuming {self.run} at {self.counters['env_steps']:,} env steps\n")
-        for name in ("train.csv", "eval.csv", TIMING_FILE):  # rows after the checkpoint (or all, starting afresh) go
+        for name in ("train.csv", "eval.csv", TIMING_FILE, COMPILE_FILE):  # rows after the checkpoint (or all) go
             runfolder.truncate_csv(os.path.join(self.run, name), self.counters["env_steps"] if resumed else -1)
         start, startup = time.perf_counter(), process_seconds()  # the run's clock counts its compilation
         if startup is not None:  # the process before the run's clock: Python, imports, devices, checks, restoring
