@@ -59,6 +59,9 @@ def test_provenance_entry_records_the_installed_versions():
     assert entry["argv"] == ["prog", "--flag"] and entry["command"] == "prog --flag"
     assert entry["versions"]["jax"] == metadata.version("jax") and entry["cwd"] == os.getcwd()
     assert set(entry["git"]) == {"commit", "dirty"}
+    provenance.mark_startup("checked")  # a start-up step's end, in seconds since the process started
+    later = provenance.provenance_entry(["prog"])["startup"]
+    assert 0 < later["checked"] <= provenance.process_seconds() + 0.01 and "checked" not in entry["startup"]
 
 
 def test_process_seconds_counts_from_the_process_start(tmp_path):

@@ -130,6 +130,9 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     assert phases[:5] == ["startup", "compile", "initialise", "seed_phase", "update_burst"]
     startup = float(timing[0]["seconds"])  # the process before the run's clock: Python, imports, checks
     assert 0.5 < startup < 300
+    marks = start["startup"]  # where that time went: the ends of the start-up steps, in order, inside the row
+    assert list(marks) == ["imports", "devices", "built", "validated"]
+    assert 0 < marks["imports"] <= marks["devices"] <= marks["built"] <= marks["validated"] <= startup + 0.01
     assert {"train_chunk", "evaluate", "checkpoint"} <= set(phases)
     chunks = [r for r in timing if r["phase"] == "train_chunk"]
     assert all(int(r["env_steps_per_seed"]) > 0 and float(r["env_steps_per_s_all_seeds"]) > 0 for r in chunks)

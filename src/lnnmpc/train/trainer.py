@@ -49,7 +49,7 @@ from lnnmpc.train.compat import agent_config_json, check_agent_config, check_com
 from lnnmpc.train.config import ConfigError, TrainConfig
 from lnnmpc.train.guard import StopRequest, all_finite, first_non_finite
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
-from lnnmpc.train.provenance import process_seconds, provenance_entry
+from lnnmpc.train.provenance import mark_startup, process_seconds, provenance_entry
 from lnnmpc.train.sharding import SeedPlacement, compile_ahead, device_count_for
 
 MAX_CHUNK = 1000  # iterations per compiled training chunk
@@ -128,6 +128,7 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
     compatible); ``steps`` extends the budget. A ``config.out`` folder that holds checkpoints is resumed too.
     ``create=False`` (``train --check``) writes nothing: a new run folder is only checked to be creatable.
     """
+    mark_startup("imports")
     if config is None and resume is None:
         raise ConfigError("give a TrainConfig or a run folder to resume")
     changes = {} if steps is None else {"steps": steps}
@@ -147,7 +148,10 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
     else:  # a new run records its task's default hyperparameters with the user's overrides
         config = dataclasses.replace(config, overrides=task_default_overrides(config.agent, config.task,
                                                                               config.overrides))
+    jax.devices()  # the backend's start (GPU contexts), timed on its own
+    mark_startup("devices")
     loop = build_loop(config)
+    mark_startup("built")
     config = dataclasses.replace(config, replay_capacity=loop.config.replay_capacity)
     if create:
         runfolder.ensure_writable(run)
@@ -169,6 +173,7 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
     if resume_step is not None:
         check_layout(run, signature)
         check_agent_config(run, loop.agent.config)
+    mark_startup("validated")
     return Setup(config=config, loop=loop, run=run, resume_step=resume_step, num_devices=num_devices,
                  signature=signature)
 
