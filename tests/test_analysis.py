@@ -16,7 +16,7 @@ from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import save_checkpoint
 from lnnmpc.train.compat import state_signature
 from lnnmpc.train.config import TrainConfig
-from lnnmpc.train.trainer import build_loop
+from lnnmpc.train.setup import build_loop
 
 
 def test_ridge_matches_an_independent_float64_solution_and_recovers_a_quadratic_state():

@@ -14,8 +14,8 @@ from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, TrainConfig, incompatibilities, obs_tag, parse_obs, parse_overrides
 from lnnmpc.train.guard import first_non_finite
 from lnnmpc.train.references import references, variant
+from lnnmpc.train.setup import validate
 from lnnmpc.train.sharding import device_count_for
-from lnnmpc.train.trainer import validate
 
 
 def test_parse_obs_and_overrides():
@@ -123,7 +123,7 @@ def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):
 
 def test_resuming_with_changed_agent_hyperparameters_is_refused(tmp_path):
     from lnnmpc.train.compat import agent_config_json, check_agent_config
-    from lnnmpc.train.trainer import build_loop
+    from lnnmpc.train.setup import build_loop
 
     run = str(tmp_path)
     agent = build_loop(TrainConfig(task="cartpole-balance", small=True, model_size=1)).agent.config

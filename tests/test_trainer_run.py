@@ -139,13 +139,17 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     seeded = next(int(r["env_steps_per_seed"]) for r in timing if r["phase"] == "seed_phase")
     assert sum(int(r["env_steps_per_seed"]) for r in chunks) + seeded == steps[-1]
     # compile.csv: every program compiled ahead, the training chunk's lowered first; the compile phase waited for
-    # all but the evaluation's (ready_s counts from that phase's start, so lowering and compiling fit inside it)
+    # all but the evaluation's and the training chunk's (ready_s counts from that phase's start, so lowering and
+    # compiling fit inside it); the chunk's rest, if any, is a second compile row right before the first chunk
     compiled = _rows(reference / "compile.csv")
     assert {r["program"] for r in compiled} == {"train_chunk", "seed_chunk", "update_burst", "init", "finite",
                                                 "evaluate"} and len(compiled) == 6
     assert all(float(r["ready_s"]) >= float(r["compile_s"]) > 0 and float(r["lower_s"]) > 0 for r in compiled)
-    compile_phase = float(timing[1]["seconds"])
-    assert all(float(r["ready_s"]) <= compile_phase for r in compiled if r["program"] != "evaluate")
+    ready = {r["program"]: float(r["ready_s"]) for r in compiled}
+    assert all(ready[name] <= float(timing[1]["seconds"]) for name in ready if name not in ("evaluate", "train_chunk"))
+    first_chunk = phases.index("train_chunk")
+    assert phases.count("compile") == 1 + (phases[first_chunk - 1] == "compile")
+    assert ready["train_chunk"] <= sum(float(r["seconds"]) for r in timing[1:first_chunk]) + 5.0  # + bookkeeping
 
 
 def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp_path, cache):
@@ -280,7 +284,7 @@ def test_trained_agent_beats_its_untrained_self(reference, cache):
     import jax
 
     from lnnmpc.train.evaluate import load_policy, mjx_evaluator
-    from lnnmpc.train.trainer import enable_compile_cache
+    from lnnmpc.train.setup import enable_compile_cache
 
     enable_compile_cache(cache)
     policy = load_policy(str(reference))

@@ -109,7 +109,8 @@ def _config_values(args: argparse.Namespace) -> dict:
 
 def run_train(args: argparse.Namespace) -> str:
     from lnnmpc.train import runfolder
-    from lnnmpc.train.trainer import train, validate
+    from lnnmpc.train.setup import validate
+    from lnnmpc.train.trainer import train
 
     values = _config_values(args)
     resume, steps, config = getattr(args, "resume", None), None, None

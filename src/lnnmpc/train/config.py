@@ -1,7 +1,7 @@
 """The trainer's configuration: one frozen, validated dataclass that the CLI, the Makefile and the Python API share.
 
 ``TrainConfig(task="walker-run", seeds=4, obs="noise=0.1,flicker=0.2")`` checks every value that can be checked
-without building anything (types, ranges, names); :func:`lnnmpc.train.trainer.validate` then builds the
+without building anything (types, ranges, names); :func:`lnnmpc.train.setup.validate` then builds the
 environments and the agent (still without compiling) so that unknown corruption options or agent overrides fail
 before minutes of compilation. Errors are :class:`ConfigError` (a ``ValueError``) naming the bad value and the
 allowed ones.

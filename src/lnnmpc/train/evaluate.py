@@ -27,8 +27,8 @@ from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
 from lnnmpc.train.compat import check_layout, state_signature
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.setup import build_loop, enable_compile_cache
 from lnnmpc.train.sharding import SeedPlacement
-from lnnmpc.train.trainer import build_loop, enable_compile_cache
 
 
 @dataclasses.dataclass(frozen=True)

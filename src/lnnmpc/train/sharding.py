@@ -86,6 +86,10 @@ class AheadOfTime:
         self.jitted, self.compiled, self.lower_s = jitted, compiled, lower_s
         self.compile_s, self.done_at = 0.0, None
 
+    def done(self) -> bool:
+        """Whether the compilation has ended (the first call would not wait)."""
+        return not isinstance(self.compiled, Future) or self.compiled.done()
+
     def ready(self) -> AheadOfTime:
         """Waits for the background compilation, if any (its errors are raised here); returns self."""
         if isinstance(self.compiled, Future):

@@ -4,23 +4,24 @@
     run = lnnmpc.train(lnnmpc.TrainConfig(task="cartpole-swingup", seeds=4, steps=100_000, obs="noise=0.1"))
     run = lnnmpc.train(resume=run, steps=200_000)          # extend a run (or continue it exactly: no steps)
 
-Order of work: the configuration is validated completely (environments and agent are built, the run folder is
-checked for write access, a resumed checkpoint is checked against the configuration and the state layout)
-before anything is compiled. Then: seed phase, update burst, training chunks; an evaluation every
-``eval_every`` environment steps, a checkpoint every ``checkpoint_every`` (at the first chunk boundary past each
-multiple), at the end, and on Ctrl-C / SIGTERM (after the running chunk; a second Ctrl-C aborts at once).
-The chunks are of equal length, sized so that the last one ends at the budget (:mod:`lnnmpc.train.schedule`).
-Checkpoints hold the whole state and the host's counters, and the chunk schedule depends only on the
-configuration, so a resumed run computes exactly what the uninterrupted run would have. An extended budget
-resizes the chunks from the resume on: the training is the same (it does not depend on where chunks end), the
-evaluations and checkpoints may fall at other steps than in a run started with that budget.
+Order of work: the configuration is validated completely (:func:`lnnmpc.train.setup.validate`: environments and
+agent are built, the run folder is checked for write access, a resumed checkpoint is checked against the
+configuration and the state layout) before anything is compiled. Then: seed phase, update burst, training chunks; an
+evaluation every ``eval_every`` environment steps, a checkpoint every ``checkpoint_every`` (at the first chunk
+boundary past each multiple), at the end, and on Ctrl-C / SIGTERM (after the running chunk; a second Ctrl-C aborts
+at once). The chunks are of equal length, sized so that the last one ends at the budget
+(:mod:`lnnmpc.train.schedule`). Checkpoints hold the whole state and the host's counters, and the chunk schedule
+depends only on the configuration, so a resumed run computes exactly what the uninterrupted run would have. An
+extended budget resizes the chunks from the resume on: the training is the same (it does not depend on where chunks
+end), the evaluations and checkpoints may fall at other steps than in a run started with that budget.
 
 ``timing.csv`` gives the wall seconds of each phase: ``startup`` (the process before the run's clock: Python,
 imports, devices, the checks above, restoring a checkpoint; Linux only), ``compile`` (the programs, in parallel
-threads, where ``compile_ahead``; the evaluation's finishes while the first chunks run, ``compile.csv`` gives each
-program's seconds), ``initialise`` (the new state; its compilation too where not compiled ahead),
-``seed_phase``, ``update_burst``, ``train_chunk``, ``evaluate``, ``checkpoint``; their sum is the process's time
-up to its last checkpoint, less the host's bookkeeping between chunks.
+threads, where ``compile_ahead``; a second row for the training chunk's rest, which compiles while the seed phase
+and update burst run; the evaluation's finishes while the first chunks run; ``compile.csv`` gives each program's
+seconds), ``initialise`` (the new state; its compilation too where not compiled ahead), ``seed_phase``,
+``update_burst``, ``train_chunk``, ``evaluate``, ``checkpoint``; their sum is the process's time up to its last
+checkpoint, less the host's bookkeeping between chunks.
 
 A NaN or Inf in a loss metric or in the agent's parameters stops the run with :class:`TrainingDiverged` naming the
 environment step, seed and metric; the newest checkpoint (written before the bad chunk) is kept as it is.
@@ -30,7 +31,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import os
 import sys
 import threading
@@ -40,150 +40,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from lnnmpc import envs
-from lnnmpc.agents.registry import make_agent, task_default_overrides
-from lnnmpc.replay import replay_capacity_for
-from lnnmpc.train import report, runfolder, schedule
+from lnnmpc.train import report, runfolder
 from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkpoint
-from lnnmpc.train.compat import agent_config_json, check_agent_config, check_compatible, check_layout, state_signature
-from lnnmpc.train.config import ConfigError, TrainConfig
+from lnnmpc.train.compat import agent_config_json
+from lnnmpc.train.config import TrainConfig
 from lnnmpc.train.guard import StopRequest, all_finite, first_non_finite
-from lnnmpc.train.loop import LoopConfig, TrainingLoop
-from lnnmpc.train.provenance import mark_startup, process_seconds, provenance_entry
-from lnnmpc.train.sharding import SeedPlacement, compile_ahead, device_count_for
+from lnnmpc.train.provenance import process_seconds, provenance_entry
+from lnnmpc.train.setup import Setup, enable_compile_cache, validate
+from lnnmpc.train.sharding import AheadOfTime, SeedPlacement, compile_ahead
 
-MAX_CHUNK = 1000  # iterations per compiled training chunk
 TIMING_FILE = "timing.csv"  # wall seconds of each phase (kept apart from train.csv, which is deterministic)
 COMPILE_FILE = "compile.csv"  # seconds to lower and compile each program compiled ahead
 
 
 class TrainingDiverged(RuntimeError):
     """A loss or parameter became NaN/Inf; the message names the environment step, seed and metric."""
-
-
-@dataclasses.dataclass(frozen=True)
-class Setup:
-    """What a validated configuration builds (nothing compiled yet)."""
-
-    config: TrainConfig
-    loop: TrainingLoop
-    run: str
-    resume_step: int | None
-    num_devices: int
-    signature: str
-
-    @property
-    def per_iteration(self) -> int:
-        """Environment steps of one loop iteration (all environments of a seed, action repeat included)."""
-        return self.config.envs * self.loop.env.action_repeat
-
-    @property
-    def seed_iterations(self) -> int:
-        """Loop iterations of the random seed phase."""
-        return math.ceil(self.config.seed_steps / self.per_iteration)
-
-    @property
-    def chunk(self) -> int:
-        """Iterations per training chunk (:func:`schedule.chunk_length`: equal chunks that end the run at its
-        budget). Fixed by the configuration, so a resumed run with the same budget chunks identically."""
-        c = self.config
-        return schedule.chunk_length(c.steps, self.seed_iterations, self.per_iteration, self.loop.env.episode_length,
-                                     c.eval_every, MAX_CHUNK)
-
-    @property
-    def final_env_steps(self) -> int:
-        """Environment steps per seed at which the run ends (the first chunk boundary at or past ``steps``)."""
-        return schedule.final_steps(self.config.steps, self.seed_iterations, self.chunk, self.per_iteration,
-                                    self.loop.env.episode_length)
-
-
-def build_loop(config: TrainConfig) -> TrainingLoop:
-    """Environments, agent and loop of a configuration (ValueErrors from them become ConfigErrors)."""
-    try:
-        env = envs.make(config.task, physics=config.physics, **config.obs)
-        eval_env = envs.make(config.task, physics=config.physics, **config.eval_obs)
-        if eval_env.observation_size != env.observation_size:
-            raise ConfigError(f"eval_obs {config.eval_obs} changes the observation size "
-                              f"({env.observation_size} -> {eval_env.observation_size}); remove_vel must match")
-        agent = make_agent(config.agent, env.observation_size, env.action_size, model_size=config.model_size,
-                           small=config.small, overrides=config.overrides or None)
-    except ConfigError:
-        raise
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
-    capacity = config.replay_capacity or (
-        replay_capacity_for(config.steps, env.action_repeat, config.envs) + 2 * (env.episode_length + 1))
-    if capacity < agent.sequence_length + 1:
-        raise ConfigError(f"replay_capacity={capacity} is below the training window ({agent.sequence_length})")
-    return TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=config.envs, batch_size=config.batch_size,
-                                                         replay_capacity=capacity,
-                                                         eval_episodes=config.eval_episodes))
-
-
-def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None,
-             create: bool = True) -> Setup:
-    """Checks everything that can be checked without compiling; returns the :class:`Setup` to train with.
-
-    ``resume``: a run folder to continue (its config.json is used; ``config``, if also given, must be
-    compatible); ``steps`` extends the budget. A ``config.out`` folder that holds checkpoints is resumed too.
-    ``create=False`` (``train --check``) writes nothing: a new run folder is only checked to be creatable.
-    """
-    mark_startup("imports")
-    if config is None and resume is None:
-        raise ConfigError("give a TrainConfig or a run folder to resume")
-    changes = {} if steps is None else {"steps": steps}
-    config = dataclasses.replace(config or runfolder.saved_config(resume), **changes)
-    if resume is not None:
-        config = dataclasses.replace(config, out=resume)
-    run = runfolder.new_run_path(config)
-    if os.path.exists(os.path.join(run, runfolder.CONFIG_FILE)):
-        saved = runfolder.saved_config(run)
-        if config.replay_capacity is None:  # the buffer keeps its size when a resumed run gets more steps
-            config = dataclasses.replace(config, replay_capacity=saved.replay_capacity)
-        # what the run recorded (task defaults included) holds unless the user sets it again
-        config = dataclasses.replace(config, overrides={**saved.overrides, **config.overrides})
-        check_compatible(run, saved, config)
-    elif resume is not None:
-        raise ConfigError(f"{resume!r} is not a run folder (no {runfolder.CONFIG_FILE})")
-    else:  # a new run records its task's default hyperparameters with the user's overrides
-        config = dataclasses.replace(config, overrides=task_default_overrides(config.agent, config.task,
-                                                                              config.overrides))
-    jax.devices()  # the backend's start (GPU contexts), timed on its own
-    mark_startup("devices")
-    loop = build_loop(config)
-    mark_startup("built")
-    config = dataclasses.replace(config, replay_capacity=loop.config.replay_capacity)
-    if create:
-        runfolder.ensure_writable(run)
-    else:
-        runfolder.check_creatable(run)
-    if config.tensorboard:
-        try:
-            import tensorboardX  # noqa: F401
-        except ImportError:
-            raise ConfigError("tensorboard=True needs the tensorboardX package (pip install tensorboardX)") from None
-    if config.wandb:
-        try:
-            import wandb  # noqa: F401
-        except ImportError:
-            raise ConfigError(f"wandb={config.wandb!r} needs the wandb package (pip install wandb)") from None
-    num_devices = device_count_for(config.seeds, jax.device_count(), config.devices)
-    resume_step = latest_step(run) if os.path.isdir(run) else None
-    signature = state_signature(loop, config.seeds)
-    if resume_step is not None:
-        check_layout(run, signature)
-        check_agent_config(run, loop.agent.config)
-    mark_startup("validated")
-    return Setup(config=config, loop=loop, run=run, resume_step=resume_step, num_devices=num_devices,
-                 signature=signature)
-
-
-def enable_compile_cache(folder: str) -> None:
-    """XLA's persistent compilation cache in ``folder`` (a resumed run or an evaluation then skips compiling)."""
-    if folder:
-        os.makedirs(folder, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", folder)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 
 
 def train(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None) -> str:
@@ -219,9 +90,11 @@ class _Run:
     def _compile_ahead(self, keys: jax.Array, state, initialise: bool) -> None:
         """Compiles the programs the run will call (the training chunk, the seed phase and update burst unless
         done, the state's initialisation if ``initialise``, the parameters' finiteness check, the evaluation) in
-        parallel, the training chunk's (the longest to compile) lowered first, and waits for all but the
-        evaluation's, which goes on compiling while the first chunks run. compile.csv gets each program's lowering
-        and compilation seconds, and when it was ready after this phase began, as each compilation ends.
+        parallel, the training chunk's (the longest to compile) lowered first, and waits for all but the training
+        chunk's, which goes on compiling while the state is initialised and the seed phase and update burst run
+        (:meth:`_schedule` waits for it before the first chunk, in a second compile row), and the evaluation's,
+        which goes on while the first chunks run. compile.csv gets each program's lowering and compilation
+        seconds, and when it was ready after this phase began, as each compilation ends.
         ``keys``: (seeds,) keys, placed; ``state``: the training state or its ``placement.abstract`` shapes (the
         programs need its shapes and placement only, so nothing waits for the state to be built)."""
         c, names = self.config, [("train_chunk", self.setup.chunk)]
@@ -242,8 +115,9 @@ class _Run:
         programs = dict(zip([name for name, _, _ in jobs],
                             compile_ahead([job[1:] for job in jobs], on_done=written), strict=True))
         self.evaluate = programs.pop("evaluate")  # its first call waits for it
-        for program in programs.values():
-            program.ready()
+        for name, program in programs.items():
+            if name != "train_chunk":
+                program.ready()
         self.init = programs.pop("init", self.init)
         self.finite = programs.pop("finite")
         self._chunk_fns.update({(name, length): programs[name] for name, length in names})
@@ -311,6 +185,10 @@ class _Run:
                 self._commit(ts, rows, metrics, first_step=None)
             n["seeded"] = True
             self._after_chunk()
+        train = self.chunk_fn("train_chunk", self.setup.chunk)
+        if isinstance(train, AheadOfTime) and not train.done():
+            with self._timed("compile"):  # the rest of its compilation, which ran beside the seed phase
+                train.ready()
         while n["env_steps"] < c.steps:
             if stop.requested:
                 self._checkpoint()

@@ -1,0 +1,152 @@
+"""What a training run is set up from: :func:`validate` checks a configuration (or a run folder to resume)
+completely without compiling anything and returns the :class:`Setup` (environments, agent and loop built, the
+run folder checked, a checkpoint to resume from checked against the configuration and the state's layout);
+:func:`build_loop` builds environments, agent and loop; :func:`enable_compile_cache` turns on XLA's persistent
+compilation cache. :mod:`lnnmpc.train.trainer` runs what this sets up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import jax
+
+from lnnmpc import envs
+from lnnmpc.agents.registry import make_agent, task_default_overrides
+from lnnmpc.replay import replay_capacity_for
+from lnnmpc.train import runfolder, schedule
+from lnnmpc.train.checkpoint import latest_step
+from lnnmpc.train.compat import check_agent_config, check_compatible, check_layout, state_signature
+from lnnmpc.train.config import ConfigError, TrainConfig
+from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.provenance import mark_startup
+from lnnmpc.train.sharding import device_count_for
+
+MAX_CHUNK = 1000  # iterations per compiled training chunk
+
+
+@dataclasses.dataclass(frozen=True)
+class Setup:
+    """What a validated configuration builds (nothing compiled yet)."""
+
+    config: TrainConfig
+    loop: TrainingLoop
+    run: str
+    resume_step: int | None
+    num_devices: int
+    signature: str
+
+    @property
+    def per_iteration(self) -> int:
+        """Environment steps of one loop iteration (all environments of a seed, action repeat included)."""
+        return self.config.envs * self.loop.env.action_repeat
+
+    @property
+    def seed_iterations(self) -> int:
+        """Loop iterations of the random seed phase."""
+        return math.ceil(self.config.seed_steps / self.per_iteration)
+
+    @property
+    def chunk(self) -> int:
+        """Iterations per training chunk (:func:`schedule.chunk_length`: equal chunks that end the run at its
+        budget). Fixed by the configuration, so a resumed run with the same budget chunks identically."""
+        c = self.config
+        return schedule.chunk_length(c.steps, self.seed_iterations, self.per_iteration, self.loop.env.episode_length,
+                                     c.eval_every, MAX_CHUNK)
+
+    @property
+    def final_env_steps(self) -> int:
+        """Environment steps per seed at which the run ends (the first chunk boundary at or past ``steps``)."""
+        return schedule.final_steps(self.config.steps, self.seed_iterations, self.chunk, self.per_iteration,
+                                    self.loop.env.episode_length)
+
+
+def build_loop(config: TrainConfig) -> TrainingLoop:
+    """Environments, agent and loop of a configuration (ValueErrors from them become ConfigErrors)."""
+    try:
+        env = envs.make(config.task, physics=config.physics, **config.obs)
+        eval_env = envs.make(config.task, physics=config.physics, **config.eval_obs)
+        if eval_env.observation_size != env.observation_size:
+            raise ConfigError(f"eval_obs {config.eval_obs} changes the observation size "
+                              f"({env.observation_size} -> {eval_env.observation_size}); remove_vel must match")
+        agent = make_agent(config.agent, env.observation_size, env.action_size, model_size=config.model_size,
+                           small=config.small, overrides=config.overrides or None)
+    except ConfigError:
+        raise
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+    capacity = config.replay_capacity or (
+        replay_capacity_for(config.steps, env.action_repeat, config.envs) + 2 * (env.episode_length + 1))
+    if capacity < agent.sequence_length + 1:
+        raise ConfigError(f"replay_capacity={capacity} is below the training window ({agent.sequence_length})")
+    return TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=config.envs, batch_size=config.batch_size,
+                                                         replay_capacity=capacity,
+                                                         eval_episodes=config.eval_episodes))
+
+
+def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None,
+             create: bool = True) -> Setup:
+    """Checks everything that can be checked without compiling; returns the :class:`Setup` to train with.
+
+    ``resume``: a run folder to continue (its config.json is used; ``config``, if also given, must be
+    compatible); ``steps`` extends the budget. A ``config.out`` folder that holds checkpoints is resumed too.
+    ``create=False`` (``train --check``) writes nothing: a new run folder is only checked to be creatable.
+    """
+    mark_startup("imports")
+    if config is None and resume is None:
+        raise ConfigError("give a TrainConfig or a run folder to resume")
+    changes = {} if steps is None else {"steps": steps}
+    config = dataclasses.replace(config or runfolder.saved_config(resume), **changes)
+    if resume is not None:
+        config = dataclasses.replace(config, out=resume)
+    run = runfolder.new_run_path(config)
+    if os.path.exists(os.path.join(run, runfolder.CONFIG_FILE)):
+        saved = runfolder.saved_config(run)
+        if config.replay_capacity is None:  # the buffer keeps its size when a resumed run gets more steps
+            config = dataclasses.replace(config, replay_capacity=saved.replay_capacity)
+        # what the run recorded (task defaults included) holds unless the user sets it again
+        config = dataclasses.replace(config, overrides={**saved.overrides, **config.overrides})
+        check_compatible(run, saved, config)
+    elif resume is not None:
+        raise ConfigError(f"{resume!r} is not a run folder (no {runfolder.CONFIG_FILE})")
+    else:  # a new run records its task's default hyperparameters with the user's overrides
+        config = dataclasses.replace(config, overrides=task_default_overrides(config.agent, config.task,
+                                                                              config.overrides))
+    jax.devices()  # the backend's start (GPU contexts), timed on its own
+    mark_startup("devices")
+    loop = build_loop(config)
+    mark_startup("built")
+    config = dataclasses.replace(config, replay_capacity=loop.config.replay_capacity)
+    if create:
+        runfolder.ensure_writable(run)
+    else:
+        runfolder.check_creatable(run)
+    if config.tensorboard:
+        try:
+            import tensorboardX  # noqa: F401
+        except ImportError:
+            raise ConfigError("tensorboard=True needs the tensorboardX package (pip install tensorboardX)") from None
+    if config.wandb:
+        try:
+            import wandb  # noqa: F401
+        except ImportError:
+            raise ConfigError(f"wandb={config.wandb!r} needs the wandb package (pip install wandb)") from None
+    num_devices = device_count_for(config.seeds, jax.device_count(), config.devices)
+    resume_step = latest_step(run) if os.path.isdir(run) else None
+    signature = state_signature(loop, config.seeds)
+    if resume_step is not None:
+        check_layout(run, signature)
+        check_agent_config(run, loop.agent.config)
+    mark_startup("validated")
+    return Setup(config=config, loop=loop, run=run, resume_step=resume_step, num_devices=num_devices,
+                 signature=signature)
+
+
+def enable_compile_cache(folder: str) -> None:
+    """XLA's persistent compilation cache in ``folder`` (a resumed run or an evaluation then skips compiling)."""
+    if folder:
+        os.makedirs(folder, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", folder)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
