@@ -108,3 +108,36 @@ def test_reset_matches_reset_to_of_sampled_state(acrobot):
     again = jax.jit(acrobot.reset_to)(qpos, qvel, k_obs)
     np.testing.assert_allclose(np.asarray(state.obs), np.asarray(again.obs), atol=1e-6)
     np.testing.assert_allclose(np.asarray(state.physics.qpos), np.asarray(qpos), atol=1e-6)
+
+
+@pytest.mark.parametrize("task,options", [("walker-run", {}), ("cartpole-swingup", {"obs_noise": 0.1, "delay": 2})])
+def test_step_or_reset_is_a_step_or_a_reset(task, options):
+    """The training loop's one physics program (Env.step_or_reset) gives what step gives where an environment runs
+    on and what reset gives where it restarts: observations, rewards, counters, keys, corruption state and
+    qpos/qvel exactly; forces and other derived fields of a restarted one to float32 rounding (its forward pass
+    compiles inside another program). Walker: Euler, contacts, velocity sensors; cartpole: RK4, noise and delay."""
+    env = envs.make(task, **options)
+    reset = jax.jit(jax.vmap(env.reset))  # three programs in all (one compilation each)
+    state = reset(jax.random.split(jax.random.key(1), 2))
+    actions = jax.random.uniform(jax.random.key(2), (2, env.action_size), minval=-1, maxval=1)
+    restart, keys = jnp.array([True, False]), jax.random.split(jax.random.key(3), 2)
+    got = jax.jit(jax.vmap(env.step_or_reset))(state, actions, restart, keys)
+    expected = (reset(keys), jax.jit(jax.vmap(env.step))(state, actions))
+    exact_physics = {"qpos", "qvel", "ctrl", "time"}
+    for i, want in enumerate(expected):  # env 0 restarted, env 1 stepped
+        for path, a in jax.tree_util.tree_leaves_with_path(got):
+            b = _leaf(want, path)
+            if jnp.issubdtype(a.dtype, jax.dtypes.prng_key):
+                a, b = jax.random.key_data(a), jax.random.key_data(b)
+            a, b, name = np.asarray(a[i]), np.asarray(b[i]), jax.tree_util.keystr(path)
+            if not name.startswith(".physics") or name.split(".")[-1] in exact_physics or i == 1:
+                np.testing.assert_array_equal(a, b, err_msg=f"env {i} {name}")
+            else:
+                np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4, err_msg=f"env {i} {name}")
+    assert int(got.t[0]) == 0 and int(got.t[1]) == int(state.t[1]) + 1 and float(got.reward[0]) == 0.0
+
+
+def _leaf(tree, path):
+    for entry in path:
+        tree = getattr(tree, entry.name)
+    return tree

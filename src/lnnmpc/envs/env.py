@@ -134,12 +134,7 @@ class Env:
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Applies ``action`` (action_size,) for ``action_repeat`` control steps; rewards are summed."""
-        action = jnp.asarray(action)
-        if action.shape != (self.action_size,):
-            raise ValueError(
-                f"{self.name}: action must have shape ({self.action_size},), got {action.shape} "
-                "(use jax.vmap for batches)"
-            )
+        action = self._checked_action(action)
 
         def control(data, _):
             data = phys.control_step(
@@ -149,6 +144,39 @@ class Env:
 
         with self._solver_context():
             data, rewards = jax.lax.scan(control, state.physics, None, length=self.action_repeat)
+        return self._stepped(state, data, rewards)
+
+    def step_or_reset(self, state: EnvState, action: jax.Array, restart: jax.Array, key: jax.Array) -> EnvState:
+        """``step(state, action)`` where ``restart`` (bool scalar) is False, ``reset(key)`` where it is True, with
+        one forward-dynamics program for both (:func:`physics.control_step_or_restart`): the training loop, which
+        may restart any environment at any step, compiles the physics once instead of a step and a reset."""
+        action = self._checked_action(action)
+        k_init, k_obs = jax.random.split(key)
+        qpos, qvel = self.initial_qpos_qvel(k_init)
+        fresh = phys.fresh_data(self.mjx_model, qpos, qvel)
+
+        def control(data, _):
+            data = phys.control_step_or_restart(
+                self.mjx_model, data, action, self.n_substeps, self.spec.needs_velocity_sensors, restart, fresh
+            )
+            return data, self.spec.reward(data, action, self.ids)
+
+        with self._solver_context():
+            data, rewards = jax.lax.scan(control, state.physics, None, length=self.action_repeat)
+        started, stepped = self._start(data, k_obs), self._stepped(state, data, rewards)
+        return jax.tree_util.tree_map(lambda a, b: jnp.where(restart, a, b), started, stepped)
+
+    def _checked_action(self, action: jax.Array) -> jax.Array:
+        action = jnp.asarray(action)
+        if action.shape != (self.action_size,):
+            raise ValueError(
+                f"{self.name}: action must have shape ({self.action_size},), got {action.shape} "
+                "(use jax.vmap for batches)"
+            )
+        return action
+
+    def _stepped(self, state: EnvState, data, rewards: jax.Array) -> EnvState:
+        """The state after a step that ended at ``data`` with ``rewards`` (action_repeat,)."""
         t = state.t + 1
         clean = self._clean_obs(data)
         key, k_obs = jax.random.split(state.key)

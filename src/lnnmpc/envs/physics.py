@@ -200,12 +200,51 @@ def control_step(
     return sync_kinematics(mx, data, with_velocity_sensors)
 
 
-def data_from_state(mx: mjx.Model, qpos: jax.Array, qvel: jax.Array) -> mjx.Data:
-    """Fresh ``mjx.Data`` at (qpos, qvel), as after dm_control's ``reset_context`` (which ends in mj_forward)."""
+def control_step_or_restart(
+    mx: mjx.Model, data: mjx.Data, action: jax.Array, n_substeps: int, with_velocity_sensors: bool,
+    restart: jax.Array, fresh: mjx.Data,
+) -> mjx.Data:
+    """:func:`control_step` where ``restart`` (bool scalar) is False; where it is True, ``fresh``'s forward
+    dynamics (:func:`fresh_data`; what :func:`data_from_state` returns, kinematics re-synced). Each substep runs
+    one forward pass for both cases (``mjx.step`` is a forward pass and an integration), so a program that may
+    restart an environment holds the forward dynamics once instead of twice (a walker reset's forward pass is
+    three quarters of a step's operations)."""
+    data = data.replace(ctrl=action.astype(data.ctrl.dtype))
+
+    def substep(d, _):
+        d = mjx.forward(mx, _select(restart, fresh, d))
+        return _select(restart, d, _integrate(mx, d)), None
+
+    data, _ = jax.lax.scan(substep, data, None, length=n_substeps)
+    return sync_kinematics(mx, data, with_velocity_sensors)
+
+
+def _integrate(mx: mjx.Model, data: mjx.Data) -> mjx.Data:
+    """``mjx.step``'s integration after its forward pass, by the model's integrator."""
+    integrator = mujoco.mjtIntegrator(int(mx.opt.integrator))
+    if integrator == mujoco.mjtIntegrator.mjINT_EULER:
+        return mjx.euler(mx, data)
+    if integrator == mujoco.mjtIntegrator.mjINT_RK4:
+        return mjx.rungekutta4(mx, data)
+    if integrator == mujoco.mjtIntegrator.mjINT_IMPLICITFAST:
+        return mjx.implicit(mx, data)
+    raise NotImplementedError(f"integrator {integrator.name} is not implemented by MJX")
+
+
+def _select(flag: jax.Array, on_true, on_false):
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(flag, a, b), on_true, on_false)
+
+
+def fresh_data(mx: mjx.Model, qpos: jax.Array, qvel: jax.Array) -> mjx.Data:
+    """``mjx.Data`` at (qpos, qvel) before any forward pass (the rest as ``mjx.make_data`` leaves it)."""
     data = mjx.make_data(mx)
     dtype = data.qpos.dtype
-    data = data.replace(qpos=jnp.asarray(qpos, dtype), qvel=jnp.asarray(qvel, dtype))
-    return mjx.forward(mx, data)
+    return data.replace(qpos=jnp.asarray(qpos, dtype), qvel=jnp.asarray(qvel, dtype))
+
+
+def data_from_state(mx: mjx.Model, qpos: jax.Array, qvel: jax.Array) -> mjx.Data:
+    """Fresh ``mjx.Data`` at (qpos, qvel), as after dm_control's ``reset_context`` (which ends in mj_forward)."""
+    return mjx.forward(mx, fresh_data(mx, qpos, qvel))
 
 
 def joint_info(model: mujoco.MjModel) -> dict[str, np.ndarray]:

@@ -96,12 +96,12 @@ class TrainingLoop:
         env = ts.env
         terminal = env.done  # (m,)
         action = jnp.where(terminal[:, None], 0.0, action)
-        stepped = jax.vmap(self.env.step)(env, action)
-        fresh = jax.vmap(self.env.reset)(jax.random.split(key, self.config.num_envs))
-        reward = jnp.where(terminal, 0.0, stepped.reward)
+        # one physics program steps the running environments and resets the finished ones (Env.step_or_reset)
+        new_env = jax.vmap(self.env.step_or_reset)(env, action, terminal,
+                                                   jax.random.split(key, self.config.num_envs))
+        reward = jnp.where(terminal, 0.0, new_env.reward)
         record = jax.vmap(self.agent.replay_record)(env.obs, action, reward, env.dt, carry)
         replay = replay_add(ts.replay, record, env.t == 0)
-        new_env = _where(terminal, fresh, stepped)
         finished = jnp.where(terminal, ts.episode_return, jnp.nan)  # returns of episodes that just ended
         episode_return = jnp.where(terminal, 0.0, ts.episode_return + reward)
         return ts.replace(replay=replay, env=new_env, carry=next_carry, episode_return=episode_return), {
