@@ -146,6 +146,8 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
                                                 "evaluate"} and len(compiled) == 6
     assert all(float(r["ready_s"]) >= float(r["compile_s"]) > 0 and float(r["lower_s"]) > 0 for r in compiled)
     ready = {r["program"]: float(r["ready_s"]) for r in compiled}
+    began = {r["program"]: float(r["ready_s"]) - float(r["compile_s"]) for r in compiled}  # compilation's start
+    assert began["train_chunk"] == min(began.values())  # lowered first, so compiling first
     assert all(ready[name] <= float(timing[1]["seconds"]) for name in ready if name not in ("evaluate", "train_chunk"))
     first_chunk = phases.index("train_chunk")
     assert phases.count("compile") == 1 + (phases[first_chunk - 1] == "compile")
