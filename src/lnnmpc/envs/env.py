@@ -135,36 +135,28 @@ class Env:
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
         """Applies ``action`` (action_size,) for ``action_repeat`` control steps; rewards are summed."""
         action = self._checked_action(action)
-
-        def control(data, _):
-            data = phys.control_step(
-                self.mjx_model, data, action, self.n_substeps, self.spec.needs_velocity_sensors
-            )
-            return data, self.spec.reward(data, action, self.ids)
-
-        with self._solver_context():
-            data, rewards = jax.lax.scan(control, state.physics, None, length=self.action_repeat)
+        data, rewards = self._control_steps(state.physics, action)
         return self._stepped(state, data, rewards)
 
     def step_or_reset(self, state: EnvState, action: jax.Array, restart: jax.Array, key: jax.Array) -> EnvState:
         """``step(state, action)`` where ``restart`` (bool scalar) is False, ``reset(key)`` where it is True, with
-        one forward-dynamics program for both (:func:`physics.control_step_or_restart`): the training loop, which
-        may restart any environment at any step, compiles the physics once instead of a step and a reset."""
+        one forward-dynamics program for both (:func:`physics.control_step` with ``restart``): the training loop,
+        which may restart any environment at any step, compiles the physics once instead of a step and a reset."""
         action = self._checked_action(action)
         k_init, k_obs = jax.random.split(key)
-        qpos, qvel = self.initial_qpos_qvel(k_init)
-        fresh = phys.fresh_data(self.mjx_model, qpos, qvel)
+        fresh = phys.fresh_data(self.mjx_model, *self.initial_qpos_qvel(k_init))
+        data, rewards = self._control_steps(state.physics, action, restart, fresh)
+        return phys.select(restart, self._start(data, k_obs), self._stepped(state, data, rewards))
 
+    def _control_steps(self, physics, action: jax.Array, restart=None, fresh=None):
+        """``action_repeat`` control steps from ``physics`` (:func:`physics.control_step`): (data, rewards)."""
         def control(data, _):
-            data = phys.control_step_or_restart(
-                self.mjx_model, data, action, self.n_substeps, self.spec.needs_velocity_sensors, restart, fresh
-            )
+            data = phys.control_step(self.mjx_model, data, action, self.n_substeps,
+                                     self.spec.needs_velocity_sensors, restart, fresh)
             return data, self.spec.reward(data, action, self.ids)
 
         with self._solver_context():
-            data, rewards = jax.lax.scan(control, state.physics, None, length=self.action_repeat)
-        started, stepped = self._start(data, k_obs), self._stepped(state, data, rewards)
-        return jax.tree_util.tree_map(lambda a, b: jnp.where(restart, a, b), started, stepped)
+            return jax.lax.scan(control, physics, None, length=self.action_repeat)
 
     def _checked_action(self, action: jax.Array) -> jax.Array:
         action = jnp.asarray(action)

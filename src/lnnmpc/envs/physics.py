@@ -184,9 +184,16 @@ def sync_kinematics(mx: mjx.Model, data: mjx.Data, with_velocity_sensors: bool) 
 
 
 def control_step(
-    mx: mjx.Model, data: mjx.Data, action: jax.Array, n_substeps: int, with_velocity_sensors: bool
+    mx: mjx.Model, data: mjx.Data, action: jax.Array, n_substeps: int, with_velocity_sensors: bool,
+    restart: jax.Array | None = None, fresh: mjx.Data | None = None,
 ) -> mjx.Data:
     """One dm_control control step: set ``ctrl``, take ``n_substeps`` physics steps, re-sync kinematics.
+
+    With ``restart`` (bool scalar) and ``fresh`` (:func:`fresh_data`): where ``restart`` is True the result is
+    instead ``fresh``'s forward dynamics (what :func:`data_from_state` returns, kinematics re-synced). Each substep
+    then runs one forward pass for both cases (``mjx.step`` is a forward pass and an integration), so a program
+    that may restart an environment holds the forward dynamics once instead of twice (a walker reset's forward
+    pass is three quarters of a step's operations).
 
     Args:
       action: (nu,) raw action; MuJoCo clamps it to ctrlrange internally, like dm_control.
@@ -194,26 +201,10 @@ def control_step(
     data = data.replace(ctrl=action.astype(data.ctrl.dtype))
 
     def substep(d, _):
-        return mjx.step(mx, d), None
-
-    data, _ = jax.lax.scan(substep, data, None, length=n_substeps)
-    return sync_kinematics(mx, data, with_velocity_sensors)
-
-
-def control_step_or_restart(
-    mx: mjx.Model, data: mjx.Data, action: jax.Array, n_substeps: int, with_velocity_sensors: bool,
-    restart: jax.Array, fresh: mjx.Data,
-) -> mjx.Data:
-    """:func:`control_step` where ``restart`` (bool scalar) is False; where it is True, ``fresh``'s forward
-    dynamics (:func:`fresh_data`; what :func:`data_from_state` returns, kinematics re-synced). Each substep runs
-    one forward pass for both cases (``mjx.step`` is a forward pass and an integration), so a program that may
-    restart an environment holds the forward dynamics once instead of twice (a walker reset's forward pass is
-    three quarters of a step's operations)."""
-    data = data.replace(ctrl=action.astype(data.ctrl.dtype))
-
-    def substep(d, _):
-        d = mjx.forward(mx, _select(restart, fresh, d))
-        return _select(restart, d, _integrate(mx, d)), None
+        if restart is None:
+            return mjx.step(mx, d), None
+        d = mjx.forward(mx, select(restart, fresh, d))
+        return select(restart, d, _integrate(mx, d)), None
 
     data, _ = jax.lax.scan(substep, data, None, length=n_substeps)
     return sync_kinematics(mx, data, with_velocity_sensors)
@@ -231,7 +222,8 @@ def _integrate(mx: mjx.Model, data: mjx.Data) -> mjx.Data:
     raise NotImplementedError(f"integrator {integrator.name} is not implemented by MJX")
 
 
-def _select(flag: jax.Array, on_true, on_false):
+def select(flag: jax.Array, on_true, on_false):
+    """Leaf by leaf ``on_true`` where ``flag`` (bool scalar) is set, else ``on_false`` (pytrees of one structure)."""
     return jax.tree_util.tree_map(lambda a, b: jnp.where(flag, a, b), on_true, on_false)
 
 
