@@ -114,12 +114,10 @@ class _Run:
 
         programs = dict(zip([name for name, _, _ in jobs],
                             compile_ahead([job[1:] for job in jobs], on_done=written), strict=True))
-        self.evaluate = programs.pop("evaluate")  # its first call waits for it
-        for name, program in programs.items():
-            if name != "train_chunk":
-                program.ready()
-        self.init = programs.pop("init", self.init)
-        self.finite = programs.pop("finite")
+        for name in programs.keys() - {"train_chunk", "evaluate"}:  # those two go on compiling
+            programs[name].ready()
+        self.init, self.finite = programs.get("init", self.init), programs["finite"]
+        self.evaluate = programs["evaluate"]  # its first call waits for it
         self._chunk_fns.update({(name, length): programs[name] for name, length in names})
 
     def _chunk_program(self, name: str, length: int):
@@ -197,7 +195,7 @@ class _Run:
                 raise KeyboardInterrupt
             first = n["env_steps"]
             with self._timed("train_chunk") as timed:
-                ts, out = self.chunk_fn("train_chunk", self.setup.chunk)(self.ts)
+                ts, out = train(self.ts)
                 rows = self._account(out)
                 timed["env_steps"] = n["env_steps"] - first
             self._commit(ts, rows, out, first_step=first)
