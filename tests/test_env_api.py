@@ -125,8 +125,8 @@ def test_step_or_reset_is_a_step_or_a_reset(task, options):
     expected = (reset(keys), jax.jit(jax.vmap(env.step))(state, actions))
     exact_physics = {"qpos", "qvel", "ctrl", "time"}
     for i, want in enumerate(expected):  # env 0 restarted, env 1 stepped
-        for path, a in jax.tree_util.tree_leaves_with_path(got):
-            b = _leaf(want, path)
+        for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(got), jax.tree_util.tree_leaves(want),
+                                strict=True):
             if jnp.issubdtype(a.dtype, jax.dtypes.prng_key):
                 a, b = jax.random.key_data(a), jax.random.key_data(b)
             a, b, name = np.asarray(a[i]), np.asarray(b[i]), jax.tree_util.keystr(path)
@@ -135,9 +135,3 @@ def test_step_or_reset_is_a_step_or_a_reset(task, options):
             else:
                 np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4, err_msg=f"env {i} {name}")
     assert int(got.t[0]) == 0 and int(got.t[1]) == int(state.t[1]) + 1 and float(got.reward[0]) == 0.0
-
-
-def _leaf(tree, path):
-    for entry in path:
-        tree = getattr(tree, entry.name)
-    return tree
