@@ -20,9 +20,18 @@ from lnnmpc.train.config import ConfigError, TrainConfig, incompatibilities
 from lnnmpc.train.loop import TrainingLoop
 
 
+def state_shapes(loop: TrainingLoop, seeds: int):
+    """The training state of ``seeds`` seeds as ``jax.ShapeDtypeStruct`` leaves: traced, not run or compiled."""
+    return jax.eval_shape(jax.vmap(loop.init), jax.random.split(jax.random.key(0), seeds))
+
+
 def state_signature(loop: TrainingLoop, seeds: int) -> str:
     """A hash of the training state's layout (tree structure, shapes, dtypes): traced, not compiled."""
-    shapes = jax.eval_shape(jax.vmap(loop.init), jax.random.split(jax.random.key(0), seeds))
+    return layout_signature(state_shapes(loop, seeds))
+
+
+def layout_signature(shapes) -> str:
+    """:func:`state_signature` of the state's :func:`state_shapes`."""
     leaves, treedef = jax.tree_util.tree_flatten(shapes)
     structure = re.sub(r" at 0x[0-9a-f]+", "", str(treedef))  # object addresses differ between processes
     text = structure + "".join(f"{x.shape}{x.dtype}" for x in leaves)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+from typing import Any
 
 import jax
 
@@ -18,7 +19,7 @@ from lnnmpc.agents.registry import make_agent, task_default_overrides
 from lnnmpc.replay import replay_capacity_for
 from lnnmpc.train import runfolder, schedule
 from lnnmpc.train.checkpoint import latest_step
-from lnnmpc.train.compat import check_agent_config, check_compatible, check_layout, state_signature
+from lnnmpc.train.compat import check_agent_config, check_compatible, check_layout, layout_signature, state_shapes
 from lnnmpc.train.config import ConfigError, TrainConfig
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.provenance import mark_startup
@@ -36,7 +37,12 @@ class Setup:
     run: str
     resume_step: int | None
     num_devices: int
-    signature: str
+    state_shapes: Any  # the training state's ShapeDtypeStructs (compat.state_shapes), traced once
+
+    @property
+    def signature(self) -> str:
+        """The state layout's hash (:func:`compat.layout_signature`), as config.json records it."""
+        return layout_signature(self.state_shapes)
 
     @property
     def per_iteration(self) -> int:
@@ -135,13 +141,13 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
             raise ConfigError(f"wandb={config.wandb!r} needs the wandb package (pip install wandb)") from None
     num_devices = device_count_for(config.seeds, jax.device_count(), config.devices)
     resume_step = latest_step(run) if os.path.isdir(run) else None
-    signature = state_signature(loop, config.seeds)
+    shapes = state_shapes(loop, config.seeds)
     if resume_step is not None:
-        check_layout(run, signature)
+        check_layout(run, layout_signature(shapes))
         check_agent_config(run, loop.agent.config)
     mark_startup("validated")
     return Setup(config=config, loop=loop, run=run, resume_step=resume_step, num_devices=num_devices,
-                 signature=signature)
+                 state_shapes=shapes)
 
 
 def enable_compile_cache(folder: str) -> None:

@@ -53,10 +53,9 @@ class SeedPlacement:
         """Places (commits) a seed-batched pytree (host or device arrays) on the devices."""
         return jax.device_put(tree, self.sharding)
 
-    def abstract(self, jitted: Callable, *args):
-        """The result of ``jitted(*args)`` as ShapeDtypeStructs placed like :meth:`put` (nothing run or compiled):
-        example arguments for compiling, ahead of time, the programs that take that result."""
-        shapes = jax.eval_shape(jitted, *args)
+    def abstract(self, shapes):
+        """Seed-batched ShapeDtypeStructs (e.g. from ``jax.eval_shape``) placed like :meth:`put` (nothing run or
+        compiled): example arguments for compiling, ahead of time, the programs that take such a pytree."""
         return jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=self.sharding,
                                                             weak_type=s.weak_type), shapes)
 

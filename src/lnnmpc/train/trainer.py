@@ -139,7 +139,7 @@ class _Run:
             "num_devices": self.setup.num_devices, "chunk": self.setup.chunk,
             "provenance": runfolder.read_provenance(self.run) + [provenance_entry()]})
         keys = self.placement.put(jax.random.split(jax.random.key(c.seed), c.seeds))
-        state = self.placement.abstract(self.init, keys)  # shapes and placement of the training state
+        state = self.placement.abstract(self.setup.state_shapes)  # shapes and placement of the training state
         self.counters["eval_key"] = _key_list(jax.random.key(c.seed + 10_000))
         resumed = self.setup.resume_step is not None
         if resumed:
