@@ -67,8 +67,12 @@ def act_over_seeds_and_envs(agent):
 
 
 def env_step_over_seeds_and_envs(loop: TrainingLoop):
-    """The environment step vmapped over seeds x environments (not jitted): (env states, actions) -> states."""
-    return jax.vmap(jax.vmap(loop.env.step))
+    """The environment step as the training chunk takes it (``Env.step_or_reset``: one physics program steps the
+    running environments and restarts the finished ones), vmapped over seeds x environments (not jitted):
+    (env states, actions, keys) -> states; ``keys`` (seeds, envs) draw the restarts' initial states."""
+    def one(env, action, key):
+        return loop.env.step_or_reset(env, action, env.done, key)
+    return jax.vmap(jax.vmap(one))
 
 
 def update_burst_program(loop: TrainingLoop):
@@ -101,14 +105,15 @@ def in_scan_calls(loop: TrainingLoop, ts, n: int) -> dict:
             return carry, action
         return jax.lax.scan(body, carry, keys)
 
-    def env_steps(env, actions):
-        return jax.lax.scan(lambda env, _: (step(env, actions), None), env, None, length=n)[0]
+    def env_steps(env, actions, env_keys):  # env_keys (n, seeds, envs)
+        return jax.lax.scan(lambda env, k: (step(env, actions, k), None), env, env_keys)[0]
 
     keys = jax.random.split(jax.random.key(3), (n, *ts.episode_return.shape))
+    env_keys = jax.random.split(jax.random.key(4), (n, *ts.episode_return.shape))
     actions = jnp.zeros((*ts.episode_return.shape, loop.env.action_size))
     burst = update_burst_program(loop)
     return {"act": (jax.jit(acts), (ts.agent, ts.carry, ts.env.obs, ts.env.dt, keys)),
-            "env": (jax.jit(env_steps), (ts.env, actions)),
+            "env": (jax.jit(env_steps), (ts.env, actions, env_keys)),
             "update": (lambda ts: burst(ts, n), (ts,))}
 
 
@@ -155,7 +160,8 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
         record["act_rolled_ms"] = 1e3 * time_call(act_rolled, *act_args, repeats=args.repeats)["median_s"]
     env_step = jax.jit(env_step_over_seeds_and_envs(loop))
     actions = jnp.zeros((seeds, envs, act_dim))
-    record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, repeats=args.repeats)["median_s"]
+    env_keys = jax.random.split(jax.random.key(4), (seeds, envs))
+    record["env_ms"] = 1e3 * time_call(env_step, ts.env, actions, env_keys, repeats=args.repeats)["median_s"]
     # Where an iteration's time goes if the parts ran back to back (act, env step, envs x update).
     record["parts_ms"] = {"act": record["act_ms"], "env": record["env_ms"], "updates": envs * record["update_ms"]}
     if not args.skip_chunk:

@@ -35,13 +35,17 @@ def test_in_scan_act_and_env_steps_equal_the_chained_calls():
         np.testing.assert_allclose(np.asarray(action), np.asarray(actions[i]), rtol=1e-5, atol=1e-6)
     assert_trees_close(final_carry, carry)
 
-    env_fn, (env, zeros) = calls["env"]
+    env_fn, (env, zeros, env_keys) = calls["env"]
     step = jax.jit(env_step_over_seeds_and_envs(loop))
     by_hand = env
-    for _ in range(n):
-        by_hand = step(by_hand, zeros)
-    assert_trees_close(env_fn(env, zeros), by_hand)
+    for i in range(n):
+        by_hand = step(by_hand, zeros, env_keys[i])
+    assert_trees_close(env_fn(env, zeros, env_keys), by_hand)
     assert int(np.asarray(by_hand.t).max()) > int(np.asarray(env.t).max())  # the steps did advance
+    # as in the training chunk, a finished environment restarts (Env.step_or_reset) instead of stepping on
+    finished = env.replace(done=env.done.at[0, 0].set(True), t=env.t.at[0, 0].set(7))
+    restarted = step(finished, zeros, env_keys[0])
+    assert int(restarted.t[0, 0]) == 0 and int(restarted.t[0, 1]) == int(env.t[0, 1]) + 1
     # calls["update"] is TrainingLoop.update_burst itself (tests/test_loop*.py), so it is not re-run here.
 
 
