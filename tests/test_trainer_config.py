@@ -77,17 +77,48 @@ def test_devices_for_seeds():
         device_count_for(3, 2, 2)
 
 
+_NEVER_COMPILES = """
+import threading, sys
+from lnnmpc.train import cli
+from lnnmpc.train.sharding import compile_ahead, pending_compilations
+
+class Lowered:  # a compilation that never ends (Python would join its thread at exit for ever)
+    def compile(self):
+        threading.Event().wait()
+
+class Jitted:
+    def lower(self, *args):
+        return Lowered()
+
+compile_ahead([(Jitted(), ())])
+assert pending_compilations() == 1
+print("stopping", flush=True)
+cli.exit_now(cli.EXIT_INTERRUPTED)
+"""
+
+
+def test_a_stopped_run_exits_without_waiting_for_background_compilations():
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _NEVER_COMPILES], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 130, done.stderr
+    assert done.stdout == "stopping\n"
+    assert "not waiting for 1 program(s) still compiling in the background" in done.stderr
+
+
 def test_programs_compiled_ahead_in_parallel_run_and_fall_back_on_other_arguments(capsys):
     import jax
     import jax.numpy as jnp
 
-    from lnnmpc.train.sharding import compile_ahead
+    from lnnmpc.train.sharding import compile_ahead, pending_compilations
 
     double, total = jax.jit(lambda x: 2 * x), jax.jit(lambda x, y: (x * y).sum())
     done = []
     first, second = compile_ahead([(double, (jnp.ones(3),)), (total, (jnp.ones(3), jnp.ones(3)))],
                                   on_done=lambda index, program: done.append((index, program)))
     assert second.ready().compiled is not None and first.ready().compiled is not None  # waits for the threads
+    assert pending_compilations() == 0
     assert sorted(index for index, _ in done) == [0, 1] and {id(p) for _, p in done} == {id(first), id(second)}
     for program in (first, second):
         assert program.lower_s > 0 and program.compile_s > 0 and program.done_at <= time.perf_counter()

@@ -178,12 +178,27 @@ def main(argv: list[str] | None = None) -> None:
         run_command(args)
     except ConfigError as error:
         sys.stderr.write(f"error: {error}\n")
-        sys.exit(EXIT_CONFIG)
+        exit_now(EXIT_CONFIG)
     except TrainingDiverged as error:
         sys.stderr.write(f"\nerror: {error}\n")
-        sys.exit(EXIT_DIVERGED)
+        exit_now(EXIT_DIVERGED)
     except KeyboardInterrupt:
-        sys.exit(EXIT_INTERRUPTED)
+        exit_now(EXIT_INTERRUPTED)
+
+
+def exit_now(code: int) -> None:
+    """Exits with ``code``. Where programs still compile in the background (the trainer's evaluation, compiled
+    while the first chunks train), Python would join their threads first, up to a minute or more on a GPU after
+    the checkpoint is saved: then the process leaves at once (``os._exit``, the standard streams flushed), as
+    nothing of the run is left unwritten by this point."""
+    sharding = sys.modules.get("lnnmpc.train.sharding")  # (not imported: nothing can be compiling)
+    pending = sharding.pending_compilations() if sharding is not None else 0
+    if pending:
+        sys.stderr.write(f"(not waiting for {pending} program(s) still compiling in the background)\n")
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":

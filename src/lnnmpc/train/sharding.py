@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import sys
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -127,9 +128,33 @@ def compile_ahead(jobs: list[tuple[Callable, tuple]],
         lowered = jitted.lower(*args)
         program = AheadOfTime(jitted, lower_s=time.perf_counter() - start)
         program.compiled = pool.submit(_compile, lowered, program, index, on_done)
+        _track(program.compiled)
         programs.append(program)
     pool.shutdown(wait=False)  # the threads end with their compilations
     return programs
+
+
+_pending: set[Future] = set()  # compile_ahead's compilations that have not ended yet
+_pending_lock = threading.Lock()
+
+
+def _track(future: Future) -> None:
+    with _pending_lock:
+        _pending.add(future)
+    future.add_done_callback(_untrack)  # (at once if it has ended already)
+
+
+def _untrack(future: Future) -> None:
+    with _pending_lock:
+        _pending.discard(future)
+
+
+def pending_compilations() -> int:
+    """How many programs :func:`compile_ahead` is still compiling in the background. Python joins their threads
+    when it exits, so a process that stops early (Ctrl-C in the first chunks, before the evaluation's program is
+    ready) would otherwise wait for them: ``lnnmpc.train.cli`` exits at once instead."""
+    with _pending_lock:
+        return len(_pending)
 
 
 def _compile(lowered, program: AheadOfTime, index: int, on_done):
