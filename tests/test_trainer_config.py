@@ -90,21 +90,29 @@ class Jitted:
     def lower(self, *args):
         return Lowered()
 
-compile_ahead([(Jitted(), ())])
-assert pending_compilations() == 1
-print("stopping", flush=True)
-cli.exit_now(cli.EXIT_INTERRUPTED)
+def run_command(args):  # the trainer, stopped or crashing while a program still compiles in the background
+    compile_ahead([(Jitted(), ())])
+    assert pending_compilations() == 1
+    print("stopping", flush=True)
+    raise {error}
+
+cli.run_command = run_command
+cli.main(["train", "--task", "cartpole-balance"])
 """
 
 
-def test_a_stopped_run_exits_without_waiting_for_background_compilations():
+@pytest.mark.parametrize("error, status, message", [
+    ("KeyboardInterrupt", 130, ""), ("RuntimeError('boom')", 1, "RuntimeError: boom")])
+def test_a_stopped_or_crashed_run_exits_without_waiting_for_background_compilations(error, status, message):
     import subprocess
     import sys
 
-    done = subprocess.run([sys.executable, "-c", _NEVER_COMPILES], capture_output=True, text=True, timeout=120)
-    assert done.returncode == 130, done.stderr
+    script = _NEVER_COMPILES.replace("{error}", error)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == status, done.stderr
     assert done.stdout == "stopping\n"
     assert "not waiting for 1 program(s) still compiling in the background" in done.stderr
+    assert message in done.stderr
 
 
 def test_programs_compiled_ahead_in_parallel_run_and_fall_back_on_other_arguments(capsys):

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import traceback
 
 from lnnmpc import envs
 from lnnmpc.agents.registry import AGENTS
@@ -184,6 +185,17 @@ def main(argv: list[str] | None = None) -> None:
         exit_now(EXIT_DIVERGED)
     except KeyboardInterrupt:
         exit_now(EXIT_INTERRUPTED)
+    except Exception:  # a crash: its traceback, then no wait for background compilations either
+        if not _compiling():
+            raise
+        traceback.print_exc()
+        exit_now(1)
+
+
+def _compiling() -> int:
+    """How many programs still compile in the background (0 where the trainer's modules were never imported)."""
+    sharding = sys.modules.get("lnnmpc.train.sharding")
+    return sharding.pending_compilations() if sharding is not None else 0
 
 
 def exit_now(code: int) -> None:
@@ -191,8 +203,7 @@ def exit_now(code: int) -> None:
     while the first chunks train), Python would join their threads first, up to a minute or more on a GPU after
     the checkpoint is saved: then the process leaves at once (``os._exit``, the standard streams flushed), as
     nothing of the run is left unwritten by this point."""
-    sharding = sys.modules.get("lnnmpc.train.sharding")  # (not imported: nothing can be compiling)
-    pending = sharding.pending_compilations() if sharding is not None else 0
+    pending = _compiling()
     if pending:
         sys.stderr.write(f"(not waiting for {pending} program(s) still compiling in the background)\n")
         sys.stdout.flush()
