@@ -78,7 +78,7 @@ def test_devices_for_seeds():
 
 
 _NEVER_COMPILES = """
-import threading, sys
+import threading
 from lnnmpc.train import cli
 from lnnmpc.train.sharding import compile_ahead, pending_compilations
 

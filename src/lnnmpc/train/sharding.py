@@ -153,8 +153,8 @@ def pending_compilations() -> int:
     """How many programs :func:`compile_ahead` is still compiling in the background. Python joins their threads
     when it exits, so a process that stops early (Ctrl-C in the first chunks, before the evaluation's program is
     ready) would otherwise wait for them: ``lnnmpc.train.cli`` exits at once instead."""
-    with _pending_lock:
-        return len(_pending)
+    with _pending_lock:  # (a future is done before its callbacks run: count by done(), not by the set's size)
+        return sum(not future.done() for future in _pending)
 
 
 def _compile(lowered, program: AheadOfTime, index: int, on_done):
