@@ -236,6 +236,25 @@ def _fake_gpu_machine(tmp_path, gpus: int, python_body: str, **extra) -> dict:
     return {**env, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PYTHON": str(bin_dir / "fake-python"), **extra}
 
 
+def test_device_batch_check_gives_an_all_gpu_job_its_devices(tmp_path):
+    """``check`` of a ``<name>@all`` line runs it with as many host devices as its ``--devices`` asks (the CPU
+    has one; the job sees every GPU of the machine), and a pinned line with one device."""
+    import subprocess
+
+    body = ('case "$XLA_FLAGS" in *host_platform_device_count=4*) exit 0;; esac; '
+            'echo "error: devices=4 but only 1 device(s) exist"; exit 1')
+    env = _fake_gpu_machine(tmp_path, 1, body, XLA_FLAGS="--xla_dump_to=/nowhere")
+    results = {}
+    for name in ("sharded@all", "pinned@0"):
+        jobs = tmp_path / f"{name}.txt"
+        jobs.write_text(f"{name} --task walker-run --seeds 4 --devices 4 --steps 200\n")
+        run = subprocess.run(["bash", DEVICE_BATCH, "check", str(jobs)], capture_output=True, text=True,
+                             timeout=60, env=env, cwd=tmp_path)
+        results[name] = (run.returncode, run.stdout.strip())
+    assert results["sharded@all"] == (0, "ok      sharded")
+    assert results["pinned@0"] == (1, "FAILED  pinned: error: devices=4 but only 1 device(s) exist")
+
+
 def test_device_batch_start_places_pinned_and_round_robin_jobs(tmp_path):
     """``device_batch.sh start`` on a fake two-GPU machine (an ``nvidia-smi`` that lists two GPUs, a PYTHON that
     prints its GPU and memory share): ``name@k`` lines go to GPU k mod 2, the others round robin by position,

@@ -208,10 +208,16 @@ check)
             failed=1
             continue
         fi
-        read -r name _ <<<"$split"
+        read -r name gpu <<<"$split"
         command=$(job_command "$name" "$args" "$scratch" --check --dry-run)
+        # An "@all" job's `--devices N` is checked against N host devices: this CPU has one, the GPU machine N
+        devices=1
+        if [ "${gpu:-}" = all ] && [[ " $args " =~ \ --devices\ ([0-9]+)\  ]]; then
+            devices=${BASH_REMATCH[1]}
+        fi
         # shellcheck disable=SC2086  # the arguments are meant to split
-        if output=$($command 2>&1 </dev/null); then
+        if output=$(XLA_FLAGS="${XLA_FLAGS:-} --xla_force_host_platform_device_count=$devices" $command 2>&1 \
+            </dev/null); then
             echo "ok      $name"
         else
             echo "FAILED  $name: $(echo "$output" | grep -E '^error|Error' | tail -1)"
