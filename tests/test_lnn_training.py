@@ -66,12 +66,16 @@ def test_closed_loop_training_stays_finite(run):
     assert np.isfinite(np.asarray(ts.carry.h)).all() and float(np.abs(np.asarray(ts.carry.h)).max()) > 0
 
 
-@pytest.mark.parametrize("name", LNN_AGENTS)
-def test_each_variant_learns_a_fixed_batch_and_trains_on_cartpole(run, name):
+# Every variant, and cfc-zp-det with its latent read off the state by a SimNorm head (groups of 4 of the tiny 8).
+VARIANTS = [(name, {}) for name in LNN_AGENTS] + [("cfc-zp-det", {"latent_head": "simnorm", "simnorm_dim": 4})]
+
+
+@pytest.mark.parametrize("name,overrides", VARIANTS, ids=[n + ("-simnorm" if o else "") for n, o in VARIANTS])
+def test_each_variant_learns_a_fixed_batch_and_trains_on_cartpole(run, name, overrides):
     """One compiled program per variant: init, UPDATES updates on one fixed window batch, UPDATES on sampled
     cartpole-swingup windows, then two deterministic act steps."""
     loop, _, ts, _ = run
-    agent = tiny_agent(name, loop.env.observation_size, loop.env.action_size)
+    agent = tiny_agent(name, loop.env.observation_size, loop.env.action_size, **overrides)
     assert agent.sequence_length == loop.agent.sequence_length
     keys = jax.random.split(jax.random.key(1), 2 * UPDATES)
     windows = jax.vmap(lambda k: replay_sample(ts.replay, k, B, agent.sequence_length)[0])(keys[:UPDATES])

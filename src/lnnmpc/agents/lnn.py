@@ -11,7 +11,8 @@ state h_{t−1} the actor held before reading o_t, and a_{t−1} (zeros at an ep
 
 * burn-in: from the stored state h_{−1} of the window's first record, the encoder reads records 0..T−1;
   the resulting state passes through ``stop_gradient`` (no gradient through the burn-in, Algorithm 1 line 2);
-* the encoder then reads records T..T+H with gradients (truncated BPTT): latents z_0..z_H (z = h);
+* the encoder then reads records T..T+H with gradients (truncated BPTT): latents z_0..z_H (z = h, or its
+  SimNorm head's output with ``latent_head="simnorm"``);
 * prediction (weighted ρ^t, averaged over the H steps, coefficient ``consistency_coef``), from (z_t, a_t):
   ZP det ‖ẑ_{t+1} − sg(z_{t+1})‖² (mean over dims); ZP stoch the Gaussian NLL of sg(z_{t+1}); OP det
   ‖ô_{t+1} − o_{t+1}‖²; OP stoch the Gaussian NLL of o_{t+1} with free bits: per step and sample,
@@ -123,6 +124,8 @@ class LNNConfig(TDMPC2Config):
             unused.add("free_bits")
         if self.rollout_steps == 1:
             unused.add("rollout_stride")
+        if self.model.latent_head == "none":
+            unused.add("model.simnorm_dim")
         return unused
 
 
@@ -177,7 +180,14 @@ class LNNTDMPC2(TDMPC2):
                                          batch["dt"][:T])[-1]
         h = jax.lax.stop_gradient(h)
         with jax.named_scope("encoder_window"):
-            return self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
+            hs = self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
+        return self.latent_of(params, hs)
+
+    def latent_of(self, params, h: jax.Array) -> jax.Array:
+        """The latents z (..., N) of encoder states h (..., N): h itself, or its SimNorm head's output."""
+        if self.config.model.latent_head == "none":
+            return h
+        return self._apply(params, h, method="latent")
 
     # -------------------------------------------------------------------------------------- losses
     def prediction_loss(self, params, z: jax.Array, action: jax.Array,
@@ -323,7 +333,7 @@ class LNNTDMPC2(TDMPC2):
         carry = self._start(carry, first_step)
         h = self._encode_one(params, carry, obs, dt)
         k_plan, k_model = jax.random.split(key)
-        latent = {"z": h, "key": jax.random.key_data(k_model)}
+        latent = {"z": self.latent_of(params, h), "key": jax.random.key_data(k_model)}
         action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params),
                                     latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step)
         return action, LNNCarry(h=h, prev_action=action, plan_mean=mean)

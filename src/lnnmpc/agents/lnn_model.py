@@ -4,10 +4,14 @@ Components (``h`` the encoder state (B, N), N = ``hidden_size``; ``a`` actions (
 
 * encoder φ: a CfC or LTC cell (:mod:`lnnmpc.nets`) over x_t = [o_t, a_{t−1}] with time input Δt_t,
   ``h_t = φ(h_{t−1}, x_t, Δt_t)``. The latent is the state itself, ``z_t = h_t`` (latent size = LNN hidden
-  size = 64, Table 4.1): no projection and no SimNorm follow the cell. The cells' states are already bounded
-  (CfC default mode: a gated mix of two tanh's, in [−1, 1]; LTC: the semi-implicit Euler update keeps the
-  potentials within the span of the previous state, v_leak and the reversal potentials), and the OP planner
-  (Algorithm 5) must carry the cell state anyway. ``input_transform="symlog"`` feeds the cell
+  size = 64, Table 4.1): by default (``latent_head="none"``) no projection and no SimNorm follow the cell. The
+  cells' states are already bounded (CfC default mode: a gated mix of two tanh's, in [−1, 1]; LTC: the
+  semi-implicit Euler update keeps the potentials within the span of the previous state, v_leak and the reversal
+  potentials), and the OP planner (Algorithm 5) must carry the cell state anyway. ``latent_head="simnorm"``
+  (ZP det only; SPEC §4's "a linear projection and SimNorm may follow") reads the latent off the state as
+  TD-MPC2's encoder ends, ``z_t = SimNorm(LayerNorm(W h_t + b))`` (N units, groups of ``simnorm_dim``), and
+  the predictor ends the same way, so that the planner rolls latents on TD-MPC2's simplices; the encoder
+  still carries h. ``input_transform="symlog"`` feeds the cell
   sign(o)·log(1 + |o|) instead of o (the thesis feeds o; walker's joint velocities reach ±50 and saturate the
   CfC backbone, see :data:`INPUT_TRANSFORMS`). The LTC runs ``ode_unfolds`` (6) hybrid-Euler sub-steps and
   reads no output map (``output_mapping="none"``).
@@ -36,6 +40,9 @@ OBJECTIVES = ("zp", "op")
 # (sign(o)·log(1+|o|), DreamerV3's squashing of vector inputs; identity near 0, logarithmic for large |o|).
 # The OP predictor still predicts raw observations; the planner squashes its predictions the same way.
 INPUT_TRANSFORMS = ("none", "symlog")
+# What turns the encoder state h into the latent z: "none" (z = h, this project's default) or "simnorm"
+# (Dense -> LayerNorm -> SimNorm, as TD-MPC2's encoder output; self-predictive deterministic variants only).
+LATENT_HEADS = ("none", "simnorm")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,10 +66,12 @@ class LNNModelConfig:
     min_sigma: float = 0.05  # bounds of the stochastic predictor's σ
     max_sigma: float = 5.0
     input_transform: str = "none"  # one of INPUT_TRANSFORMS
+    latent_head: str = "none"  # one of LATENT_HEADS
+    simnorm_dim: int = 8  # SimNorm group size of latent_head="simnorm"
 
     def __post_init__(self):
         for name in ("obs_dim", "action_dim", "hidden_size", "mlp_dim", "num_bins", "backbone_units",
-                     "ode_unfolds"):
+                     "ode_unfolds", "simnorm_dim"):
             check_int_at_least(name, getattr(self, name), 1)
         check_int_at_least("backbone_layers", self.backbone_layers, 0)
         check_int_at_least("num_q", self.num_q, 2)
@@ -71,14 +80,22 @@ class LNNModelConfig:
         check_choice("stochastic", self.stochastic, (False, True))
         check_choice("cfc_mode", self.cfc_mode, CFC_MODES)
         check_choice("input_transform", self.input_transform, INPUT_TRANSFORMS)
+        check_choice("latent_head", self.latent_head, LATENT_HEADS)
         check_fraction("q_dropout", self.q_dropout)
+        if self.latent_head == "simnorm":
+            if self.objective != "zp" or self.stochastic:
+                raise ValueError(f"latent_head='simnorm' needs a self-predictive deterministic agent (*-zp-det), "
+                                 f"got objective={self.objective!r}, stochastic={self.stochastic!r}")
+            if self.hidden_size % self.simnorm_dim:
+                raise ValueError(f"latent_head='simnorm' needs hidden_size divisible by simnorm_dim, got "
+                                 f"hidden_size={self.hidden_size}, simnorm_dim={self.simnorm_dim}")
         if not 0 < self.min_sigma <= self.max_sigma:
             raise ValueError(f"need 0 < min_sigma <= max_sigma, got min_sigma={self.min_sigma!r}, "
                              f"max_sigma={self.max_sigma!r}")
 
     @property
     def latent_dim(self) -> int:
-        """Size of the latent z = h."""
+        """Size of the latent z (= h, or its SimNorm head's output of the same size)."""
         return self.hidden_size
 
     @property
@@ -120,8 +137,16 @@ class LNNWorldModel(WorldModel):
     def setup(self):
         c = self.config
         self.encoder = make_cell(c)
-        self.predictor = MLP((c.mlp_dim, c.mlp_dim), c.target_dim * (2 if c.stochastic else 1))
+        simnorm = c.simnorm_dim if c.latent_head == "simnorm" else 0
+        if simnorm:
+            self.latent_head = MLP((), c.latent_dim, simnorm, output_layer_norm=True)
+        self.predictor = MLP((c.mlp_dim, c.mlp_dim), c.target_dim * (2 if c.stochastic else 1), simnorm,
+                             output_layer_norm=bool(simnorm))
         self.setup_heads()
+
+    def latent(self, h: jax.Array) -> jax.Array:
+        """The latent z (..., N) the heads and the planner read, from encoder states h (..., N)."""
+        return self.latent_head(h) if self.config.latent_head == "simnorm" else h
 
     def encode_step(self, h: jax.Array, obs: jax.Array, prev_action: jax.Array, dt: jax.Array) -> jax.Array:
         """One encoder step: h (B, N), obs (B, d), prev_action (B, A), dt (B,) or (B, 1) -> h' (B, N)."""
@@ -151,7 +176,8 @@ class LNNWorldModel(WorldModel):
     def encode(self, obs: jax.Array) -> jax.Array:
         """Latent (..., N) of a one-observation history (zero state, zero previous action, Δt = 1)."""
         zeros = jnp.zeros((*obs.shape[:-1], self.config.hidden_size), obs.dtype)
-        return self._encode_flat(zeros, obs, jnp.zeros((*obs.shape[:-1], self.config.action_dim), obs.dtype))
+        return self.latent(self._encode_flat(zeros, obs, jnp.zeros((*obs.shape[:-1], self.config.action_dim),
+                                                                   obs.dtype)))
 
     def next(self, z: jax.Array, action: jax.Array) -> jax.Array:
         """Mean transition (..., N) (TD-MPC2's ``next``; used when planning without the predictor's noise)."""
@@ -166,4 +192,5 @@ class LNNWorldModel(WorldModel):
     def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
         """Touches every component (used by ``init``); obs (d,), action (A,)."""
         h = self.encode_step(jnp.zeros((1, self.config.hidden_size)), obs[None], action[None], jnp.ones((1,)))[0]
-        return self.predict(h, action), self.reward(h, action), self.policy(h), self.q(h, action)
+        z = self.latent(h)
+        return self.predict(z, action), self.reward(z, action), self.policy(z), self.q(z, action)

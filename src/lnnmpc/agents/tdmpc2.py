@@ -99,10 +99,15 @@ def clip_jointly(grads: dict, max_norm: float, frozen: tuple[str, ...] = ()) -> 
     return {k: v if k in frozen else jax.tree.map(lambda g: g * factor, v) for k, v in grads.items()}
 
 
+# Top-level parameter groups trained at the encoder's learning rate (× encoder_lr_scale): the encoder, and an LNN
+# agent's latent head (the projection TD-MPC2's encoder ends with).
+ENCODER_PARAMS = ("encoder", "latent_head")
+
+
 def make_optimizers(config: TDMPC2Config) -> tuple[optax.GradientTransformation, optax.GradientTransformation]:
     """(world-model optimiser: all but the policy head; policy optimiser: the policy head only)."""
     clip = optax.clip_by_global_norm(config.grad_clip_norm)
-    model_groups = lambda params: _labels(params, lambda top: "encoder" if top == "encoder" else
+    model_groups = lambda params: _labels(params, lambda top: "encoder" if top in ENCODER_PARAMS else
                                           "frozen" if top == "policy_head" else "rest")
     policy_groups = lambda params: _labels(params, lambda top: "policy" if top == "policy_head" else "frozen")
     if config.flat_optimizer:
