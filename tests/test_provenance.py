@@ -32,6 +32,48 @@ def test_git_state_outside_a_checkout_is_none(tmp_path, monkeypatch):
     assert provenance.git_state(str(tmp_path)) == {"commit": None, "dirty": None}
 
 
+def test_git_state_of_a_snapshot_is_its_commit_file_and_of_an_ignored_copy_none(tmp_path):
+    """Code unpacked under a checkout's ignored folder (a device batch's ``runs/gpu-head``) is not that
+    checkout's HEAD: without a COMMIT file it records none, with one (``snapshot.sh``) that commit."""
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    _git(repo, "init", "-q")
+    (repo / ".gitignore").write_text("runs/\n")
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "one")
+    package = repo / "runs" / "gpu-head" / "src" / "lnnmpc"
+    package.mkdir(parents=True)
+    assert provenance.git_state(str(package)) == {"commit": None, "dirty": None}
+    (repo / "runs" / "gpu-head" / "COMMIT").write_text("abc123\n")
+    state = provenance.git_state(str(package))
+    assert state == {"commit": "abc123", "dirty": False, "snapshot": str(repo / "runs" / "gpu-head")}
+    assert provenance.code_line([{"git": state}]) == "abc123 (snapshot)"
+
+
+def test_snapshot_script_freezes_head_and_refuses_uncommitted_code(tmp_path):
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "snapshot.sh")
+    repo = tmp_path / "repo"
+    (repo / "src" / "lnnmpc").mkdir(parents=True)
+    (repo / "benchmarks").mkdir()
+    _git(repo, "init", "-q")
+    (repo / "src" / "lnnmpc" / "a.py").write_text("x = 1\n")
+    (repo / "benchmarks" / "b.py").write_text("y = 1\n")
+    _git(repo, "add", ".")
+    _git(repo, "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "-m", "one")
+    head = _git(repo, "rev-parse", "HEAD")
+    env = {k: v for k, v in os.environ.items() if k != "FORCE"}
+    run = lambda: subprocess.run(["bash", script, "snap"], cwd=repo, capture_output=True, text=True, env=env)
+    done = run()
+    assert done.returncode == 0, done.stderr
+    assert (repo / "snap" / "COMMIT").read_text().strip() == head
+    assert (repo / "snap" / "src" / "lnnmpc" / "a.py").read_text() == "x = 1\n"
+    assert provenance.git_state(str(repo / "snap" / "src" / "lnnmpc"))["commit"] == head
+    (repo / "src" / "lnnmpc" / "a.py").write_text("x = 2\n")
+    refused = run()
+    assert refused.returncode == 1 and "commit them first" in refused.stderr
+    assert (repo / "snap" / "src" / "lnnmpc" / "a.py").read_text() == "x = 1\n"  # the old snapshot is kept
+
+
 def test_command_line_names_package_scripts_as_modules_and_quotes_arguments():
     root = os.path.dirname(provenance.__file__)
     assert (provenance.command_line([os.path.join(root, "cli.py"), "train", "--obs", "noise=0.1, flicker=0.2"])

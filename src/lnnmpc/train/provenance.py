@@ -12,7 +12,10 @@ was stopped and resumed on another machine says so:
 empty where ``/proc`` cannot tell): where the ``startup`` row of ``timing.csv`` goes.
 
 ``git`` is ``{"commit": None, "dirty": None}`` where the code is not in a git checkout (an installed wheel, a
-copied snapshot) or git is missing.
+copied snapshot) or git is missing, and where the code lies in a checkout's git-ignored folder (a snapshot
+unpacked under ``runs/``): that checkout's HEAD says nothing of it. A snapshot made by
+``experiments/scripts/snapshot.sh`` carries its commit in a ``COMMIT`` file beside its ``src/``; the code then
+reports ``{"commit": <that hash>, "dirty": False, "snapshot": <the snapshot's folder>}``.
 """
 
 from __future__ import annotations
@@ -40,9 +43,29 @@ def software_versions(packages: tuple[str, ...] = PACKAGES) -> dict[str, str | N
     return versions
 
 
+SNAPSHOT_FILE = "COMMIT"  # in a code snapshot's folder, beside its src/: the commit it was archived from
+
+
+def snapshot_commit(path: str = _PACKAGE_ROOT) -> tuple[str, str] | None:
+    """(commit, snapshot folder) when the package at ``path`` (``<snapshot>/src/lnnmpc``) is a snapshot with a
+    ``COMMIT`` file, else None."""
+    folder = os.path.dirname(os.path.dirname(os.path.abspath(path)))
+    try:
+        with open(os.path.join(folder, SNAPSHOT_FILE)) as f:
+            commit = f.read().strip()
+    except OSError:
+        return None
+    return (commit, folder) if commit else None
+
+
 def git_state(path: str = _PACKAGE_ROOT) -> dict[str, str | bool | None]:
     """``{"commit": HEAD's hash, "dirty": whether tracked files differ from it}`` of the checkout holding
-    ``path``; both None outside a git checkout or without git."""
+    ``path``; a snapshot's own commit (module docstring); both None outside a git checkout, in a folder that
+    checkout ignores, or without git."""
+    snapshot = snapshot_commit(path)
+    if snapshot:
+        return {"commit": snapshot[0], "dirty": False, "snapshot": snapshot[1]}
+
     def git(*args: str) -> str | None:
         try:
             done = subprocess.run(["git", "-C", path, *args], capture_output=True, text=True, timeout=10)
@@ -51,7 +74,7 @@ def git_state(path: str = _PACKAGE_ROOT) -> dict[str, str | bool | None]:
         return done.stdout.strip() if done.returncode == 0 else None
 
     commit = git("rev-parse", "HEAD")
-    if not commit:
+    if not commit or git("check-ignore", "-q", os.path.abspath(path)) is not None:
         return {"commit": None, "dirty": None}
     status = git("status", "--porcelain", "--untracked-files=no")
     return {"commit": commit, "dirty": None if status is None else bool(status)}
@@ -110,7 +133,7 @@ def code_line(entries: list[dict]) -> str:
     latest = entries[-1]
     git = latest.get("git") or {}
     code = (git["commit"][:12] + (" (uncommitted changes)" if git.get("dirty") else "")
-            if git.get("commit") else "not a git checkout")
+            + (" (snapshot)" if git.get("snapshot") else "") if git.get("commit") else "not a git checkout")
     versions = latest.get("versions") or {}
     shown = ", ".join(f"{name} {versions[name]}" for name in ("jax", "mujoco-mjx") if versions.get(name))
     starts = f"; {len(entries)} starts (resumed)" if len(entries) > 1 else ""
