@@ -34,7 +34,7 @@ def test_git_state_outside_a_checkout_is_none(tmp_path, monkeypatch):
 
 def test_git_state_of_a_snapshot_is_its_commit_file_and_of_an_ignored_copy_none(tmp_path):
     """Code unpacked under a checkout's ignored folder (a device batch's ``runs/gpu-head``) is not that
-    checkout's HEAD: without a COMMIT file it records none, with one (``snapshot.sh``) that commit."""
+    checkout's HEAD: without a SNAPSHOT_COMMIT file it records none, with one (``snapshot.sh``) that commit."""
     repo = tmp_path / "repo"
     repo.mkdir()
     _git(repo, "init", "-q")
@@ -44,7 +44,7 @@ def test_git_state_of_a_snapshot_is_its_commit_file_and_of_an_ignored_copy_none(
     package = repo / "runs" / "gpu-head" / "src" / "lnnmpc"
     package.mkdir(parents=True)
     assert provenance.git_state(str(package)) == {"commit": None, "dirty": None}
-    (repo / "runs" / "gpu-head" / "COMMIT").write_text("abc123\n")
+    (repo / "runs" / "gpu-head" / "SNAPSHOT_COMMIT").write_text("abc123\n")
     state = provenance.git_state(str(package))
     assert state == {"commit": "abc123", "dirty": False, "snapshot": str(repo / "runs" / "gpu-head")}
     assert provenance.code_line([{"git": state}]) == "abc123 (snapshot)"
@@ -65,7 +65,7 @@ def test_snapshot_script_freezes_head_and_refuses_uncommitted_code(tmp_path):
     run = lambda: subprocess.run(["bash", script, "snap"], cwd=repo, capture_output=True, text=True, env=env)
     done = run()
     assert done.returncode == 0, done.stderr
-    assert (repo / "snap" / "COMMIT").read_text().strip() == head
+    assert (repo / "snap" / "SNAPSHOT_COMMIT").read_text().strip() == head
     assert (repo / "snap" / "src" / "lnnmpc" / "a.py").read_text() == "x = 1\n"
     assert provenance.git_state(str(repo / "snap" / "src" / "lnnmpc"))["commit"] == head
     (repo / "src" / "lnnmpc" / "a.py").write_text("x = 2\n")

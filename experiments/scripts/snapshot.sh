@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The code a device batch runs, frozen at a commit: HEAD's src/ and benchmarks/ unpacked into DIR (default
-# runs/gpu-head, git-ignored) with the commit's hash in DIR/COMMIT, which a run's config.json then records as its
-# code (`lnnmpc.train.provenance.git_state`; without COMMIT a package under an ignored folder records none, since
+# runs/gpu-head, git-ignored) with the commit's hash in DIR/SNAPSHOT_COMMIT, which a run's config.json then records as its
+# code (`lnnmpc.train.provenance.git_state`; without SNAPSHOT_COMMIT a package under an ignored folder records none, since
 # the enclosing checkout's HEAD says nothing of it). Uncommitted changes to src/ or benchmarks/ are refused: they
 # would not be in the snapshot (FORCE=1 snapshots HEAD anyway).
 #
@@ -17,5 +17,5 @@ fi
 rm -rf "$dir"
 mkdir -p "$dir"
 git archive HEAD src benchmarks | tar -x -C "$dir"
-git rev-parse HEAD >"$dir/COMMIT"
-echo "$dir: $(cat "$dir/COMMIT") ($(du -sh "$dir" | cut -f1))"
+git rev-parse HEAD >"$dir/SNAPSHOT_COMMIT"
+echo "$dir: $(cat "$dir/SNAPSHOT_COMMIT") ($(du -sh "$dir" | cut -f1))"

@@ -14,7 +14,7 @@ empty where ``/proc`` cannot tell): where the ``startup`` row of ``timing.csv`` 
 ``git`` is ``{"commit": None, "dirty": None}`` where the code is not in a git checkout (an installed wheel, a
 copied snapshot) or git is missing, and where the code lies in a checkout's git-ignored folder (a snapshot
 unpacked under ``runs/``): that checkout's HEAD says nothing of it. A snapshot made by
-``experiments/scripts/snapshot.sh`` carries its commit in a ``COMMIT`` file beside its ``src/``; the code then
+``experiments/scripts/snapshot.sh`` carries its commit in a ``SNAPSHOT_COMMIT`` file beside its ``src/``; the code then
 reports ``{"commit": <that hash>, "dirty": False, "snapshot": <the snapshot's folder>}``.
 """
 
@@ -43,12 +43,12 @@ def software_versions(packages: tuple[str, ...] = PACKAGES) -> dict[str, str | N
     return versions
 
 
-SNAPSHOT_FILE = "COMMIT"  # in a code snapshot's folder, beside its src/: the commit it was archived from
+SNAPSHOT_FILE = "SNAPSHOT_COMMIT"  # in a code snapshot's folder, beside its src/: the commit it was archived from
 
 
 def snapshot_commit(path: str = _PACKAGE_ROOT) -> tuple[str, str] | None:
     """(commit, snapshot folder) when the package at ``path`` (``<snapshot>/src/lnnmpc``) is a snapshot with a
-    ``COMMIT`` file, else None."""
+    ``SNAPSHOT_COMMIT`` file, else None."""
     folder = os.path.dirname(os.path.dirname(os.path.abspath(path)))
     try:
         with open(os.path.join(folder, SNAPSHOT_FILE)) as f:
