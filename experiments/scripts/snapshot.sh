@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # The code a device batch runs, frozen at a commit: HEAD's src/ and benchmarks/ unpacked into DIR (default
-# runs/gpu-head, git-ignored) with the commit's hash in DIR/SNAPSHOT_COMMIT, which a run's config.json then records as its
-# code (`lnnmpc.train.provenance.git_state`; without SNAPSHOT_COMMIT a package under an ignored folder records none, since
-# the enclosing checkout's HEAD says nothing of it). Uncommitted changes to src/ or benchmarks/ are refused: they
-# would not be in the snapshot (FORCE=1 snapshots HEAD anyway).
+# runs/gpu-head, git-ignored) with the commit's hash in DIR/SNAPSHOT_COMMIT, which a run's config.json then
+# records as its code (`lnnmpc.train.provenance.git_state`; without SNAPSHOT_COMMIT a package under an ignored
+# folder records none, since the enclosing checkout's HEAD says nothing of it). Uncommitted changes to src/ or
+# benchmarks/ are refused: they would not be in the snapshot (FORCE=1 snapshots HEAD anyway).
 #
 #   experiments/scripts/snapshot.sh [DIR]
 #
