@@ -11,11 +11,12 @@ import time
 
 import jax
 
-from lnnmpc.train.provenance import software_versions
+from lnnmpc.train.provenance import git_state, software_versions
 
 
 def environment_info() -> dict:
-    """Device and package versions, recorded in every benchmark JSON."""
+    """Device, package versions and the code's commit (``git_state``: a snapshot's own commit on a device
+    batch), recorded in every benchmark JSON."""
     device = jax.devices()[0]
     versions = software_versions(("jax", "jaxlib", "flax", "optax", "mujoco", "mujoco-mjx", "dm-control"))
     return {
@@ -24,6 +25,7 @@ def environment_info() -> dict:
         "device_count": jax.device_count(),
         "python": platform.python_version(),
         "versions": versions,
+        "git": git_state(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }

@@ -31,3 +31,14 @@ def test_write_json_expands_the_device_and_returns_the_path(tmp_path):
     assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == [f"{tag}-run-update.json"]  # no temp file left
     plain = common.write_json(str(tmp_path / "plain.json"), {})
     assert plain == str(tmp_path / "plain.json") and Path(plain).exists()
+
+
+def test_environment_info_records_the_code_commit(monkeypatch):
+    """Every benchmark JSON names the code it measured (the snapshot's commit on a device batch)."""
+    from lnnmpc.train import provenance
+
+    monkeypatch.setattr(common, "git_state", lambda: {"commit": "abc123", "dirty": False, "snapshot": "/s"})
+    info = common.environment_info()
+    assert info["git"] == {"commit": "abc123", "dirty": False, "snapshot": "/s"}
+    monkeypatch.undo()
+    assert common.environment_info()["git"] == provenance.git_state()
