@@ -146,10 +146,11 @@ def test_act_encodes_like_the_training_unroll(zp_agent):
 
 def test_simnorm_latent_head_puts_latents_and_predictions_on_simplices():
     """``latent_head="simnorm"``: z = SimNorm(LayerNorm(W h + b)) in training, acting and the planner's
-    transitions; the head trains at the encoder's learning rate; only *-zp-det agents take it."""
+    transitions, ``latent_size`` wide (12 here, the encoder state 8); the head trains at the encoder's learning
+    rate; only *-zp-det agents take it."""
     from lnnmpc.agents.registry import acting_latent
 
-    agent = tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=4)
+    agent = tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=4, latent_size=12)
     state = quick_jit(agent.init)(jax.random.key(0))
     assert set(state.params) >= {"encoder", "latent_head", "predictor"}
     batch, T = window(agent), agent.config.burn_in
@@ -157,20 +158,20 @@ def test_simnorm_latent_head_puts_latents_and_predictions_on_simplices():
         state.params)
     on_simplices = lambda z: (np.all(np.asarray(z) >= 0)
                               and np.allclose(np.asarray(z).reshape(*z.shape[:-1], -1, 4).sum(-1), 1, atol=1e-5))
-    assert zs.shape == (agent.config.horizon + 1, B, 8) and on_simplices(zs)
+    assert zs.shape == (agent.config.horizon + 1, B, 12) and on_simplices(zs)
     # z is the head on the encoder states of the same window (burn-in then the learning steps) ...
     h_T = agent.encode_sequence(state.params, batch["h_prev"][0], batch["obs"][:T], batch["prev_action"][:T],
                                 batch["dt"][:T])[-1]
     hs = agent.encode_sequence(state.params, h_T, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
-    assert not on_simplices(hs)
+    assert hs.shape[-1] == 8 and not on_simplices(hs)
     np.testing.assert_allclose(np.asarray(zs), np.asarray(agent.latent_of(state.params, hs)), rtol=1e-5, atol=1e-6)
     # ... the planner's transition predicts a latent on the simplices too, and the actor plans from the head's z.
     z_next = agent._apply(state.params, zs[0], batch["action"][T], method="transition")
-    assert on_simplices(z_next)
+    assert z_next.shape == (B, 12) and on_simplices(z_next)
     _, carry = agent.act(state, agent.initial_carry(), batch["obs"][0, 0], batch["dt"][0, 0], jax.random.key(2),
                          explore=False, first_step=jnp.array(True))
     z_act = acting_latent(agent, state, carry, batch["obs"][0, 0])
-    assert on_simplices(z_act)
+    assert z_act.shape == (12,) and on_simplices(z_act)
     np.testing.assert_allclose(np.asarray(z_act), np.asarray(agent.latent_of(state.params, carry.h)), rtol=1e-6)
     # Adam's first step moves every parameter by its group's learning rate: the head's is the encoder's (× 0.3).
     ones = jax.tree_util.tree_map(jnp.ones_like, state.params)
@@ -179,15 +180,22 @@ def test_simnorm_latent_head_puts_latents_and_predictions_on_simplices():
     for group, scale in (("encoder", 0.3), ("latent_head", 0.3), ("predictor", 1.0)):
         for leaf in jax.tree_util.tree_leaves(step[group]):
             np.testing.assert_allclose(np.asarray(leaf), -lr * scale, rtol=1e-3, err_msg=group)
-    assert "model.simnorm_dim" not in agent.config.inactive_fields()
-    assert "model.simnorm_dim" in tiny("cfc-zp-det").config.inactive_fields()
+    assert not {"model.simnorm_dim", "model.latent_size"} & agent.config.inactive_fields()
+    assert {"model.simnorm_dim", "model.latent_size"} <= tiny("cfc-zp-det").config.inactive_fields()
     with pytest.raises(ValueError, match=r"latent_head='simnorm' needs a self-predictive deterministic agent "
                                          r"\(\*-zp-det\), got objective='op', stochastic=False"):
         tiny("cfc-op-det", latent_head="simnorm")
     with pytest.raises(ValueError, match=r"objective='zp', stochastic=True"):
         tiny("ltc-zp-stoch", latent_head="simnorm")
-    with pytest.raises(ValueError, match=r"hidden_size divisible by simnorm_dim, got hidden_size=8, simnorm_dim=3"):
+    with pytest.raises(ValueError, match=r"latent size divisible by simnorm_dim, got hidden_size=8, simnorm_dim=3"):
         tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=3)
+    with pytest.raises(ValueError, match=r"latent size divisible by simnorm_dim, got latent_size=10, simnorm_dim=4"):
+        tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=4, latent_size=10)
+    with pytest.raises(ValueError, match=r"latent_size=16 needs latent_head='simnorm': without a head the latent is "
+                                         r"the encoder state \(hidden_size=8\)"):
+        tiny("cfc-zp-det", latent_size=16)
+    with pytest.raises(ValueError, match=r"latent_size=-8 is invalid; expected an integer >= 0"):
+        tiny("cfc-zp-det", latent_head="simnorm", latent_size=-8)
     with pytest.raises(ValueError, match=r"latent_head='ln' is not supported; allowed values: \['none', 'simnorm'\]"):
         tiny("cfc-zp-det", latent_head="ln")
 

@@ -66,8 +66,10 @@ def test_closed_loop_training_stays_finite(run):
     assert np.isfinite(np.asarray(ts.carry.h)).all() and float(np.abs(np.asarray(ts.carry.h)).max()) > 0
 
 
-# Every variant, and cfc-zp-det with its latent read off the state by a SimNorm head (groups of 4 of the tiny 8).
-VARIANTS = [(name, {}) for name in LNN_AGENTS] + [("cfc-zp-det", {"latent_head": "simnorm", "simnorm_dim": 4})]
+# Every variant, and cfc-zp-det with its latent read off the state by a SimNorm head (12 wide, groups of 4, on the
+# tiny encoder state of 8).
+VARIANTS = [(name, {}) for name in LNN_AGENTS] + [
+    ("cfc-zp-det", {"latent_head": "simnorm", "simnorm_dim": 4, "latent_size": 12})]
 
 
 @pytest.mark.parametrize("name,overrides", VARIANTS, ids=[n + ("-simnorm" if o else "") for n, o in VARIANTS])

@@ -125,7 +125,7 @@ class LNNConfig(TDMPC2Config):
         if self.rollout_steps == 1:
             unused.add("rollout_stride")
         if self.model.latent_head == "none":
-            unused.add("model.simnorm_dim")
+            unused |= {"model.simnorm_dim", "model.latent_size"}
         return unused
 
 
@@ -184,7 +184,7 @@ class LNNTDMPC2(TDMPC2):
         return self.latent_of(params, hs)
 
     def latent_of(self, params, h: jax.Array) -> jax.Array:
-        """The latents z (..., N) of encoder states h (..., N): h itself, or its SimNorm head's output."""
+        """The latents z (..., Z) of encoder states h (..., N): h itself (Z = N), or its SimNorm head's output."""
         if self.config.model.latent_head == "none":
             return h
         return self._apply(params, h, method="latent")

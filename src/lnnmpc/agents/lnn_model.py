@@ -9,12 +9,12 @@ Components (``h`` the encoder state (B, N), N = ``hidden_size``; ``a`` actions (
   semi-implicit Euler update keeps the potentials within the span of the previous state, v_leak and the reversal
   potentials), and the OP planner (Algorithm 5) must carry the cell state anyway. ``latent_head="simnorm"``
   (ZP det only; SPEC §4's "a linear projection and SimNorm may follow") reads the latent off the state as
-  TD-MPC2's encoder ends, ``z_t = SimNorm(LayerNorm(W h_t + b))`` (N units, groups of ``simnorm_dim``), and
-  the predictor ends the same way, so that the planner rolls latents on TD-MPC2's simplices; the encoder
-  still carries h. ``input_transform="symlog"`` feeds the cell
-  sign(o)·log(1 + |o|) instead of o (the thesis feeds o; walker's joint velocities reach ±50 and saturate the
-  CfC backbone, see :data:`INPUT_TRANSFORMS`). The LTC runs ``ode_unfolds`` (6) hybrid-Euler sub-steps and
-  reads no output map (``output_mapping="none"``).
+  TD-MPC2's encoder ends, ``z_t = SimNorm(LayerNorm(W h_t + b))`` (``latent_size`` units, N unless set,
+  groups of ``simnorm_dim``), and the predictor ends the same way, so that the planner rolls latents on
+  TD-MPC2's simplices (512 wide in TD-MPC2's 5M model); the encoder still carries h.
+  ``input_transform="symlog"`` feeds the cell sign(o)·log(1 + |o|) instead of o (the thesis feeds o; walker's
+  joint velocities reach ±50 and saturate the CfC backbone, see :data:`INPUT_TRANSFORMS`). The LTC runs
+  ``ode_unfolds`` (6) hybrid-Euler sub-steps and reads no output map (``output_mapping="none"``).
 * predictor f: an MLP (``mlp_dim`` × 2, NormedLinear + Mish) on [z, a] predicting the next latent (ZP) or
   the next observation (OP): deterministic (the prediction) or a diagonal Gaussian (mean, σ) with
   σ = clip(softplus(raw), min_sigma, max_sigma). Means are unbounded (dm_control observations are).
@@ -54,7 +54,7 @@ class LNNModelConfig:
     cell: str = "cfc"  # "cfc" or "ltc"
     objective: str = "zp"  # "zp" (self-predictive) or "op" (observation-predictive)
     stochastic: bool = False  # Gaussian predictor (NLL) instead of a deterministic one (MSE)
-    hidden_size: int = 64  # LNN hidden size = latent size
+    hidden_size: int = 64  # LNN hidden size = latent size (unless latent_head's latent_size)
     mlp_dim: int = 192
     num_q: int = 2
     num_bins: int = 101
@@ -68,12 +68,14 @@ class LNNModelConfig:
     input_transform: str = "none"  # one of INPUT_TRANSFORMS
     latent_head: str = "none"  # one of LATENT_HEADS
     simnorm_dim: int = 8  # SimNorm group size of latent_head="simnorm"
+    latent_size: int = 0  # width of latent_head="simnorm"'s latent; 0: hidden_size
 
     def __post_init__(self):
         for name in ("obs_dim", "action_dim", "hidden_size", "mlp_dim", "num_bins", "backbone_units",
                      "ode_unfolds", "simnorm_dim"):
             check_int_at_least(name, getattr(self, name), 1)
         check_int_at_least("backbone_layers", self.backbone_layers, 0)
+        check_int_at_least("latent_size", self.latent_size, 0)
         check_int_at_least("num_q", self.num_q, 2)
         check_choice("cell", self.cell, CELLS)
         check_choice("objective", self.objective, OBJECTIVES)
@@ -86,22 +88,26 @@ class LNNModelConfig:
             if self.objective != "zp" or self.stochastic:
                 raise ValueError(f"latent_head='simnorm' needs a self-predictive deterministic agent (*-zp-det), "
                                  f"got objective={self.objective!r}, stochastic={self.stochastic!r}")
-            if self.hidden_size % self.simnorm_dim:
-                raise ValueError(f"latent_head='simnorm' needs hidden_size divisible by simnorm_dim, got "
-                                 f"hidden_size={self.hidden_size}, simnorm_dim={self.simnorm_dim}")
+            if self.latent_dim % self.simnorm_dim:
+                size = f"latent_size={self.latent_size}" if self.latent_size else f"hidden_size={self.hidden_size}"
+                raise ValueError(f"latent_head='simnorm' needs a latent size divisible by simnorm_dim, got {size}, "
+                                 f"simnorm_dim={self.simnorm_dim}")
+        elif self.latent_size:
+            raise ValueError(f"latent_size={self.latent_size} needs latent_head='simnorm': without a head the latent "
+                             f"is the encoder state (hidden_size={self.hidden_size})")
         if not 0 < self.min_sigma <= self.max_sigma:
             raise ValueError(f"need 0 < min_sigma <= max_sigma, got min_sigma={self.min_sigma!r}, "
                              f"max_sigma={self.max_sigma!r}")
 
     @property
     def latent_dim(self) -> int:
-        """Size of the latent z (= h, or its SimNorm head's output of the same size)."""
-        return self.hidden_size
+        """Size of the latent z: N (z = h), or the SimNorm head's ``latent_size`` when set."""
+        return self.latent_size or self.hidden_size
 
     @property
     def target_dim(self) -> int:
         """Size of what the predictor predicts: the latent (ZP) or the observation (OP)."""
-        return self.hidden_size if self.objective == "zp" else self.obs_dim
+        return self.latent_dim if self.objective == "zp" else self.obs_dim
 
 
 def make_cell(config: LNNModelConfig) -> nn.Module:
