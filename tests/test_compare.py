@@ -135,6 +135,12 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
     assert lines[2] == "| 10 | 400.0 ± 223.6 | 200.0 | 200 / 600 |  |  |  |"
     assert lines[3] == "| 20 | 700.0 ± 100.0 | 100.0 | 800 / 600 | 50.0 ± 0.0 | 0.0 | 50 |"
     assert lines[-1] == "| mean of the last 3 | 633.3 |  |  |  |  |  |"  # (400 + 700 + 800) / 3; B has one
+    # Each run's last evaluation split at a return: A's step 30 has 690 under 695; all of B's one episode is under.
+    assert tables_main([a, b, "--labels", "A", "B", "--returns-only", "--falls-below", "695"]) == 0
+    falls = capsys.readouterr().out.split("\n\n")[1].splitlines()
+    assert falls[0] == "| run | env steps | episodes | under 695 | mean | mean of the others | best | worst |"
+    assert falls[2:] == ["| A | 30 | 4 | 1 | 800.0 | 836.7 | 910.0 | 690.0 |",
+                         "| B | 20 | 1 | 1 | 50.0 |  | 50.0 | 50.0 |"]
     assert tables_main([a, "--labels", "A", "--speed-only"]) == 0
     row = capsys.readouterr().out.splitlines()[-1]
     # median chunk 300 env steps/s over 2 seeds; everything logged 100 + 18 + 3.5 s

@@ -2,10 +2,13 @@
 
     python -m lnnmpc.train.tables runs/a runs/b --labels "H_plan 10" "H_plan 3"
     python -m lnnmpc.train.tables runs/a --speed-only        # or --returns-only, --commands-only
+    python -m lnnmpc.train.tables runs/a runs/b --returns-only --falls-below 400   # walker: who fell, and the rest
 
 Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds ×
 episodes, the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations.
-A run that has no evaluation at a step another run has gets an empty cell. Speed (from each ``timing.csv``, wall
+A run that has no evaluation at a step another run has gets an empty cell. With ``--falls-below R``, a second table
+looks at each run's last evaluation: how many episodes returned under R (a walker that fell), the mean of all, of
+the others, and the best and worst episode. Speed (from each ``timing.csv``, wall
 seconds): the process's start (imports, devices; runs since the trainer logs it), compilation, training chunks
 (total, count, environment steps per chunk per seed), the median chunk's environment steps per second over all
 seeds and per seed, evaluations (total, count) and everything logged.
@@ -61,6 +64,22 @@ def returns_table(curves: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def falls_table(curves: list[dict], threshold: float) -> str:
+    """The markdown table of each run's last evaluation split at ``threshold`` (``curves``: :func:`load_curves`):
+    episodes, how many returned under it, the mean of all and of the others (empty when all are under), best and
+    worst episode."""
+    lines = [f"| run | env steps | episodes | under {threshold:g} | mean | mean of the others | best | worst |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for curve in curves:
+        last = max(int(r["env_step"]) for r in curve["rows"])
+        returns = np.array([float(r["return"]) for r in curve["rows"] if int(r["env_step"]) == last])
+        others = returns[returns >= threshold]
+        lines.append(f"| {curve['label']} | {last:,} | {returns.size} | {returns.size - others.size} | "
+                     f"{returns.mean():.1f} | {f'{others.mean():.1f}' if others.size else ''} | "
+                     f"{returns.max():.1f} | {returns.min():.1f} |")
+    return "\n".join(lines)
+
+
 def speed_row(run: str, seeds: int) -> dict:
     """Wall seconds of one run's phases from its ``timing.csv`` (see the module docstring)."""
     path = os.path.join(run, "timing.csv")
@@ -111,12 +130,17 @@ def main(argv: list[str] | None = None) -> int:
     which.add_argument("--returns-only", action="store_true", help="only the evaluation table")
     which.add_argument("--speed-only", action="store_true", help="only the speed table")
     which.add_argument("--commands-only", action="store_true", help="only the commands that started the runs")
+    p.add_argument("--falls-below", type=float, default=None, metavar="R",
+                   help="after the evaluation table, each run's last evaluation split at return R: episodes under "
+                   "it (falls, on walker), the mean of the others, best and worst")
     args = p.parse_args(argv)
 
     def tables() -> str:
         curves = load_curves(args.runs, args.labels)  # checks folders and labels; reads each config.json once
         only = args.returns_only or args.speed_only or args.commands_only
         parts = [returns_table(curves)] if args.returns_only or not only else []
+        if parts and args.falls_below is not None:
+            parts.append(falls_table(curves, args.falls_below))
         parts += [speed_table(curves)] if args.speed_only or not only else []
         parts += [commands_block(curves)] if args.commands_only or not only else []
         return "\n\n".join(parts)
