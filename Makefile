@@ -64,11 +64,12 @@ compare: $(STAMP)
 	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS)) \
 		$(if $(METRICS),--metrics $(METRICS))
 
-# make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"]
+# make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"] [FALLS=400]
 #   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means), the speed and
-#   the commands that started them
+#   the commands that started them; FALLS=R adds each run's last evaluation split at return R (walker falls)
+FALLS ?=
 tables: $(STAMP)
-	$(PY) -m lnnmpc.train.tables $(RUNS) $(if $(LABELS),--labels $(LABELS))
+	$(PY) -m lnnmpc.train.tables $(RUNS) $(if $(LABELS),--labels $(LABELS)) $(if $(FALLS),--falls-below $(FALLS))
 
 # make experiment NAME=table5_3 [ARGS="--seeds 3 --agents tdmpc2,cfc-zp-det --steps 200000 --dry-run"]
 #   trains (resumes) the study's grid, evaluates it and writes experiments/results/studies/NAME.{csv,md}
