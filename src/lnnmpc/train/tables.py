@@ -30,12 +30,17 @@ from lnnmpc.train.config import ConfigError, command_status
 from lnnmpc.train.report import LAST_EVALUATIONS, eval_table
 
 
+def step_returns(rows: list[dict], step: int) -> np.ndarray:
+    """The episode returns (n,) that ``eval.csv`` rows logged at environment step ``step``, all seeds."""
+    return np.array([float(r["return"]) for r in rows if int(r["env_step"]) == step])
+
+
 def episode_stats(rows: list[dict]) -> dict[int, dict]:
     """Per evaluation step of ``eval.csv`` rows: {"mean", "std" (over all seeds × episodes), "seed_std" (over the
     seeds' means), "seed_means" (by seed order, from :func:`eval_table`)}."""
     stats = {}
     for entry in eval_table(rows):
-        returns = [float(r["return"]) for r in rows if int(r["env_step"]) == entry["env_step"]]
+        returns = step_returns(rows, entry["env_step"])
         means = list(entry["per_seed"].values())
         stats[entry["env_step"]] = {"mean": float(np.mean(returns)), "std": float(np.std(returns)),
                                     "seed_std": float(np.std(means)), "seed_means": means}
@@ -72,7 +77,7 @@ def falls_table(curves: list[dict], threshold: float) -> str:
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     for curve in curves:
         last = max(int(r["env_step"]) for r in curve["rows"])
-        returns = np.array([float(r["return"]) for r in curve["rows"] if int(r["env_step"]) == last])
+        returns = step_returns(curve["rows"], last)
         others = returns[returns >= threshold]
         lines.append(f"| {curve['label']} | {last:,} | {returns.size} | {returns.size - others.size} | "
                      f"{returns.mean():.1f} | {f'{others.mean():.1f}' if others.size else ''} | "
