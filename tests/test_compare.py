@@ -141,6 +141,9 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
     assert falls[0] == "| run | env steps | episodes | under 695 | mean | mean of the others | best | worst |"
     assert falls[2:] == ["| A | 30 | 4 | 1 | 800.0 | 836.7 | 910.0 | 690.0 |",
                          "| B | 20 | 1 | 1 | 50.0 |  | 50.0 | 50.0 |"]
+    with pytest.raises(SystemExit):
+        tables_main([a, "--falls-below", "nan"])
+    assert "--falls-below needs a finite return, got nan" in capsys.readouterr().err
     assert tables_main([a, "--labels", "A", "--speed-only"]) == 0
     row = capsys.readouterr().out.splitlines()[-1]
     # median chunk 300 env steps/s over 2 seeds; everything logged 100 + 18 + 3.5 s

@@ -139,6 +139,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="after the evaluation table, each run's last evaluation split at return R: episodes under "
                    "it (falls, on walker), the mean of the others, best and worst")
     args = p.parse_args(argv)
+    if args.falls_below is not None and not np.isfinite(args.falls_below):
+        p.error(f"--falls-below needs a finite return, got {args.falls_below}")
 
     def tables() -> str:
         curves = load_curves(args.runs, args.labels)  # checks folders and labels; reads each config.json once
