@@ -185,14 +185,14 @@ def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
         ("100", 1.5, 0.5), ("300", 3.5, 0.5), ("500", 5.5, 0.5)]
 
 
-def _rank_run(folder, rows, rank_column=True):
+def _rank_run(folder, rows, rank_column=True, model=None):
     """A results folder as the trainer leaves it, minus checkpoints: config.json and eval.csv only."""
     import json
 
     os.makedirs(folder)
     with open(os.path.join(folder, "config.json"), "w") as f:
         json.dump({"config": {"task": "cartpole-swingup", "agent": "cfc-zp-det"},
-                   "agent_config": {"model": {"hidden_size": 16}}}, f)
+                   "agent_config": {"model": model or {"hidden_size": 16, "latent_size": 0}}}, f)
     fields = ["env_step", "seed", "episode", "return"] + (["effective_rank"] if rank_column else [])
     with open(os.path.join(folder, "eval.csv"), "w", newline="") as f:
         writer = csv.DictWriter(f, fields, extrasaction="ignore")
@@ -221,6 +221,12 @@ def test_ranks_only_report_pools_seeds_from_eval_csv_without_a_checkpoint(tmp_pa
     seed1 = [row["effective_rank"] for row in rows if row["seed"] == 1 and row["env_step"] == 10_000]
     assert int(one[0]["episodes"]) == 4
     np.testing.assert_allclose(float(one[0]["effective_rank"]), np.mean(seed1), rtol=1e-6)
+    # A SimNorm head 48 wide on the 16-unit state: the ranks are of its 48-dim latents.
+    wide = str(tmp_path / "wide")
+    _rank_run(wide, rows, model={"hidden_size": 16, "latent_head": "simnorm", "latent_size": 48})
+    assert report.main([wide, "--ranks-only"]) == 0
+    got = list(csv.DictReader(open(os.path.join(wide, "analysis", "effective_rank.csv"))))
+    assert {int(r["latent_dim"]) for r in got} == {48}
 
 
 def test_ranks_only_report_names_a_run_without_logged_ranks(tmp_path, capsys):

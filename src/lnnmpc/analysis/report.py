@@ -203,7 +203,8 @@ def write_rank_history(run: str, out: str | None = None, seed_index: int | None 
     ``<run>/analysis``); seed ``seed_index``, or all seeds' episodes pooled. Returns the folder."""
     config = runfolder.read_config(run)
     model = config["agent_config"]["model"]
-    latent_dim = model.get("hidden_size", model.get("latent_dim"))
+    # the liquid agents' latent is h (hidden_size) unless a SimNorm head widens it (latent_size); TD-MPC2's latent_dim
+    latent_dim = model.get("latent_size") or model.get("hidden_size", model.get("latent_dim"))
     rows = ranks_from_eval(run, seed_index, latent_dim)
     if not rows:
         raise ValueError(f"{os.path.join(run, 'eval.csv')} has no effective_rank column (the run predates it); "
