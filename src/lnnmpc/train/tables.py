@@ -37,13 +37,15 @@ def step_returns(rows: list[dict], step: int) -> np.ndarray:
 
 def episode_stats(rows: list[dict]) -> dict[int, dict]:
     """Per evaluation step of ``eval.csv`` rows: {"mean", "std" (over all seeds × episodes), "seed_std" (over the
-    seeds' means), "seed_means" (by seed order, from :func:`eval_table`)}."""
+    seeds' means; None for a one-seed run, which has no spread over seeds), "seed_means" (by seed order, from
+    :func:`eval_table`)}."""
     stats = {}
     for entry in eval_table(rows):
         returns = step_returns(rows, entry["env_step"])
         means = list(entry["per_seed"].values())
         stats[entry["env_step"]] = {"mean": float(np.mean(returns)), "std": float(np.std(returns)),
-                                    "seed_std": float(np.std(means)), "seed_means": means}
+                                    "seed_std": float(np.std(means)) if len(means) > 1 else None,
+                                    "seed_means": means}
     return stats
 
 
@@ -58,7 +60,8 @@ def returns_table(curves: list[dict]) -> str:
         cells = [f"{step:,}"]
         for run_stats in stats:
             s = run_stats.get(step)
-            cells += ([f"{s['mean']:.1f} ± {s['std']:.1f}", f"{s['seed_std']:.1f}",
+            seed_std = "" if not s or s["seed_std"] is None else f"{s['seed_std']:.1f}"
+            cells += ([f"{s['mean']:.1f} ± {s['std']:.1f}", seed_std,
                        " / ".join(f"{m:.0f}" for m in s["seed_means"])] if s else ["", "", ""])
         lines.append("| " + " | ".join(cells) + " |")
     last = ["mean of the last 3"]
