@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from lnnmpc.agents.math import simnorm
-from lnnmpc.agents.tdmpc2_model import WorldModelConfig, count_parameters, init_world_model
+from lnnmpc.agents.tdmpc2_model import WorldModelConfig, count_parameters, init_world_model, q_logits_of_heads
 
 
 @pytest.fixture(scope="module")
@@ -81,6 +83,30 @@ def test_each_q_head_matches_its_own_numpy_mlp_on_batched_inputs(small):
         np.testing.assert_allclose(q[head], _numpy_head(params["q_heads"], head, x), rtol=2e-4, atol=2e-4)
     seeds = jax.vmap(lambda zz, aa: model.apply({"params": params}, zz, aa, method="q"))(z, a)  # batch over axis 0
     np.testing.assert_allclose(np.asarray(seeds).transpose(1, 0, 2, 3), q, rtol=1e-5, atol=1e-5)
+
+
+def test_chosen_heads_alone_match_their_numpy_mlps_and_the_full_ensemble(small):
+    """q_logits_of_heads computes only the chosen heads (any order, under jit), each with its own parameters; with a
+    dropout key each chosen head draws its own mask, and dropout stays off without one."""
+    config, model, variables = small
+    rng = np.random.default_rng(1)
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(rng.normal(0, 0.3, a.shape), a.dtype), variables["params"])
+    z, a = rng.normal(size=(4, 16)).astype(np.float32), rng.normal(size=(4, 1)).astype(np.float32)
+    full = np.asarray(model.apply({"params": params}, z, a, method="q"))
+    x = np.concatenate([z, a], axis=-1).astype(np.float64)
+    chosen = jax.jit(lambda h: q_logits_of_heads(config, params["q_heads"], h, z, a))
+    for heads in ([2, 0], [1, 2], [0]):
+        q = np.asarray(chosen(jnp.array(heads)))
+        assert q.shape == (len(heads), 4, 101)
+        np.testing.assert_allclose(q, full[heads], rtol=1e-5, atol=1e-5)
+        for i, head in enumerate(heads):
+            np.testing.assert_allclose(q[i], _numpy_head(params["q_heads"], head, x), rtol=2e-4, atol=2e-4)
+    # the same head twice with dropout (at 0.5, so that a mask surely drops something): two different masks, so
+    # two outputs, neither equal to the eval output
+    dropping = dataclasses.replace(config, q_dropout=0.5)
+    twice = np.asarray(q_logits_of_heads(dropping, params["q_heads"], jnp.array([1, 1]), z, a,
+                                         dropout_key=jax.random.key(3)))
+    assert not np.allclose(twice[0], twice[1]) and not np.allclose(twice[0], full[1])
 
 
 def test_simnorm_matches_numpy():

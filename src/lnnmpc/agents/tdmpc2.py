@@ -30,7 +30,7 @@ from flax.traverse_util import path_aware_map
 
 from lnnmpc.agents import math as M
 from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
-from lnnmpc.agents.tdmpc2_model import WorldModel, WorldModelConfig
+from lnnmpc.agents.tdmpc2_model import WorldModel, WorldModelConfig, q_logits_of_heads
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,12 +151,11 @@ class TDMPC2:
         return self.model.apply({"params": params}, *args, method=method, **kwargs)
 
     def _q_values(self, params, z, action, heads, key=None, q_params=None):
-        """Q of the chosen heads (2,) -> (2, ...); dropout on when ``key`` is given."""
-        if q_params is not None:
-            params = {**params, "q_heads": q_params}
-        rngs = {"dropout": key} if key is not None else {}
-        logits = self._apply(params, z, action, key is None, method="q", rngs=rngs)
-        return M.two_hot_inv(logits[heads], self.config.model.num_bins, self.config.vmin, self.config.vmax)
+        """Q of the chosen heads (2,) -> (2, ...), only those heads computed; dropout on when ``key`` is given;
+        ``q_params`` (the target heads) in place of ``params["q_heads"]``."""
+        q_params = params["q_heads"] if q_params is None else q_params
+        logits = q_logits_of_heads(self.config.model, q_params, heads, z, action, dropout_key=key)
+        return M.two_hot_inv(logits, self.config.model.num_bins, self.config.vmin, self.config.vmax)
 
     def _policy_sample(self, params, z, key):
         mean, raw = self._apply(params, z, method="policy")
