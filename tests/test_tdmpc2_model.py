@@ -95,7 +95,7 @@ def test_chosen_heads_alone_match_their_numpy_mlps_and_the_full_ensemble(small):
     full = np.asarray(model.apply({"params": params}, z, a, method="q"))
     x = np.concatenate([z, a], axis=-1).astype(np.float64)
     chosen = jax.jit(lambda h: q_logits_of_heads(config, params["q_heads"], h, z, a))
-    for heads in ([2, 0], [1, 2], [0]):
+    for heads in ([2, 0], [1, 2], [0], [2, 0, 1]):  # the last: every head (the ensemble as it is, reordered)
         q = np.asarray(chosen(jnp.array(heads)))
         assert q.shape == (len(heads), 4, 101)
         np.testing.assert_allclose(q, full[heads], rtol=1e-5, atol=1e-5)
@@ -107,6 +107,13 @@ def test_chosen_heads_alone_match_their_numpy_mlps_and_the_full_ensemble(small):
     twice = np.asarray(q_logits_of_heads(dropping, params["q_heads"], jnp.array([1, 1]), z, a,
                                          dropout_key=jax.random.key(3)))
     assert not np.allclose(twice[0], twice[1]) and not np.allclose(twice[0], full[1])
+    # every head with dropout (the liquid agents' 2 of 2): one key's masks, put in the order asked for
+    key = jax.random.key(4)
+    in_order = np.asarray(q_logits_of_heads(dropping, params["q_heads"], jnp.array([0, 1, 2]), z, a, dropout_key=key))
+    reordered = np.asarray(q_logits_of_heads(dropping, params["q_heads"], jnp.array([1, 2, 0]), z, a,
+                                             dropout_key=key))
+    np.testing.assert_array_equal(reordered, in_order[[1, 2, 0]])
+    assert not np.allclose(in_order, full)
 
 
 def test_simnorm_matches_numpy():
