@@ -172,6 +172,32 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
     assert out.rstrip().endswith("```")
 
 
+def test_tables_pool_runs_of_one_configuration_into_one_column(tmp_path, capsys):
+    from lnnmpc.train.tables import main as tables_main
+
+    # a 2-seed run with master seed 0 and a 1-seed run with master seed 5: one configuration, three seeds
+    a = _run(tmp_path / "a", "tdmpc2", {10: [[100.0, 300.0], [500.0, 700.0]], 20: [[800.0], [600.0]]}, seeds=2)
+    b = _run(tmp_path / "b", "tdmpc2", {10: [[0.0, 200.0]], 20: [[400.0]], 30: [[900.0]]}, seeds=1, seed=5)
+    assert tables_main([a, b, "--labels", "A", "B", "--pool", "A+B", "--returns-only", "--falls-below", "500"]) == 0
+    returns, falls = capsys.readouterr().out.split("\n\n")
+    lines = returns.splitlines()
+    assert lines[0].endswith("| A+B: mean ± std | A+B: over seeds | A+B: seeds |")
+    # step 10: seed means 200 / 600 / 100 (the pooled column's seeds in run order), episodes' std over all six
+    assert lines[2].endswith("| 300.0 ± 238.0 | 216.0 | 200 / 600 / 100 |")
+    assert lines[3].endswith("| 600.0 ± 163.3 | 163.3 | 800 / 600 / 400 |")
+    assert lines[4].endswith("| 900.0 ± 0.0 |  | 900 |  |  |  |")  # only b evaluated at 30: not pooled
+    assert falls.splitlines()[-1] == "| A+B | 20 | 3 | 1 | 600.0 | 700.0 | 800.0 | 400.0 |"
+    # runs that differ in what they learn are refused, naming the setting; so is pooling one run
+    c = _run(tmp_path / "c", "tdmpc2", {10: [[1.0]]}, seeds=1, batch_size=128)
+    assert tables_main([a, c, "--pool", "x"]) == 2
+    assert "differ in batch_size: 256 != 128" in capsys.readouterr().err
+    assert tables_main([a, "--pool", "x"]) == 2
+    assert "--pool needs at least two run folders" in capsys.readouterr().err
+    d = _run(tmp_path / "d", "tdmpc2", {40: [[1.0]]}, seeds=1)
+    assert tables_main([a, d, "--pool", "x"]) == 2
+    assert "share no evaluation step" in capsys.readouterr().err
+
+
 def test_reports_without_plots_rewrite_only_the_summary(tmp_path):
     from lnnmpc.train import report
 

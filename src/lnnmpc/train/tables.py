@@ -3,15 +3,17 @@
     python -m lnnmpc.train.tables runs/a runs/b --labels "H_plan 10" "H_plan 3"
     python -m lnnmpc.train.tables runs/a --speed-only        # or --returns-only, --commands-only
     python -m lnnmpc.train.tables runs/a runs/b --returns-only --falls-below 400   # walker: who fell, and the rest
+    python -m lnnmpc.train.tables runs/seed0 runs/seed1 runs/seed2 --pool "3 seeds"  # one-seed runs as one
 
-Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds ×
-episodes, the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations.
-A run that has no evaluation at a step another run has gets an empty cell. With ``--falls-below R``, a second table
-looks at each run's last evaluation: how many episodes returned under R (a walker that fell), the mean of all, of
-the others, and the best and worst episode. Speed (from each ``timing.csv``, wall
-seconds): the process's start (imports, devices; runs since the trainer logs it), compilation, training chunks
-(total, count, environment steps per chunk per seed), the median chunk's environment steps per second over all
-seeds and per seed, evaluations (total, count) and everything logged.
+Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds × episodes,
+the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations. A run that
+has no evaluation at a step another run has gets an empty cell. With ``--falls-below R``, a second table looks at
+each run's last evaluation: how many episodes returned under R (a walker that fell), the mean of all, of the others,
+and the best and worst episode. ``--pool LABEL`` adds one column of all the runs' seeds together (runs of one
+configuration started with other master seeds, e.g. one seed per call on a one-GPU machine). Speed (from each
+``timing.csv``, wall seconds): the process's start (imports, devices; runs since the trainer logs it), compilation,
+training chunks (total, count, environment steps per chunk per seed), the median chunk's environment steps per
+second over all seeds and per seed, evaluations (total, count) and everything logged.
 Commands: the command line that started each run (``config.json``'s provenance). These are the tables the READMEs
 under ``experiments/results/`` quote.
 """
@@ -88,6 +90,54 @@ def falls_table(curves: list[dict], threshold: float) -> str:
     return "\n".join(lines)
 
 
+# Settings that say how a run was launched, not what it learns: runs differing only in these may be pooled.
+LAUNCH_KEYS = ("seed", "seeds", "steps", "devices", "out", "name", "runs_dir", "compile_cache", "compile_ahead",
+               "tensorboard", "wandb", "checkpoint_every", "keep_checkpoints", "eval_every")
+
+
+def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """``"key: a_value != b_value"`` for every key (nested ones dotted) that both dicts have with different values;
+    a key only one of them has is not a difference (fields added to the code since the older run)."""
+    out = []
+    for key in sorted(a.keys() & b.keys()):
+        if isinstance(a[key], dict) and isinstance(b[key], dict):
+            out += config_differences(a[key], b[key], f"{prefix}{key}.")
+        elif a[key] != b[key]:
+            out.append(f"{prefix}{key}: {a[key]!r} != {b[key]!r}")
+    return out
+
+
+def pool_curves(curves: list[dict], label: str) -> dict:
+    """One curve (as :func:`load_curves` gives) of every seed of ``curves``' runs, at the evaluation steps all of
+    them have: runs of one configuration started with different master seeds (or seed counts, or device counts)
+    read as one run of all their seeds. Seeds are renumbered run after run.
+
+    Raises ConfigError naming the settings two runs differ in (other than :data:`LAUNCH_KEYS`; the agent's
+    resolved settings are compared too), or when the runs share no evaluation step."""
+    if len(curves) < 2:
+        raise ConfigError("--pool needs at least two run folders")
+    first = curves[0]
+    for curve in curves[1:]:
+        a, b = ({k: v for k, v in c["config"]["config"].items() if k not in LAUNCH_KEYS} for c in (first, curve))
+        differ = config_differences(a, b) + config_differences(first["config"].get("agent_config", {}),
+                                                               curve["config"].get("agent_config", {}), "agent.")
+        if differ:
+            raise ConfigError(f"cannot pool {first['run']!r} and {curve['run']!r}: they differ in "
+                              + "; ".join(differ) + f" (only {', '.join(LAUNCH_KEYS)} may differ)")
+    steps = set.intersection(*({int(r["env_step"]) for r in c["rows"]} for c in curves))
+    if not steps:
+        raise ConfigError("the runs to pool share no evaluation step: " + "; ".join(
+            f"{c['run']!r} evaluated at {sorted({int(r['env_step']) for r in c['rows']})}" for c in curves))
+    rows, offset = [], 0
+    for curve in curves:
+        seeds = sorted({int(r["seed"]) for r in curve["rows"]})
+        index = {s: offset + i for i, s in enumerate(seeds)}
+        rows += [{**r, "seed": index[int(r["seed"])]} for r in curve["rows"] if int(r["env_step"]) in steps]
+        offset += len(seeds)
+    return {**first, "run": " + ".join(c["run"] for c in curves), "label": label, "rows": rows,
+            "table": eval_table(rows)}
+
+
 def speed_row(run: str, seeds: int) -> dict:
     """Wall seconds of one run's phases from its ``timing.csv`` (see the module docstring)."""
     path = os.path.join(run, "timing.csv")
@@ -141,16 +191,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--falls-below", type=float, default=None, metavar="R",
                    help="after the evaluation table, each run's last evaluation split at return R: episodes under "
                    "it (falls, on walker), the mean of the others, best and worst")
+    p.add_argument("--pool", default=None, metavar="LABEL",
+                   help="also one column LABEL of every run's seeds together, at the steps all runs evaluated "
+                   "(runs of one configuration with other master seeds; refused for runs that differ otherwise)")
     args = p.parse_args(argv)
     if args.falls_below is not None and not np.isfinite(args.falls_below):
         p.error(f"--falls-below needs a finite return, got {args.falls_below}")
 
     def tables() -> str:
         curves = load_curves(args.runs, args.labels)  # checks folders and labels; reads each config.json once
+        pooled = [pool_curves(curves, args.pool)] if args.pool is not None else []
         only = args.returns_only or args.speed_only or args.commands_only
-        parts = [returns_table(curves)] if args.returns_only or not only else []
+        parts = [returns_table(curves + pooled)] if args.returns_only or not only else []
         if parts and args.falls_below is not None:
-            parts.append(falls_table(curves, args.falls_below))
+            parts.append(falls_table(curves + pooled, args.falls_below))
         parts += [speed_table(curves)] if args.speed_only or not only else []
         parts += [commands_block(curves)] if args.commands_only or not only else []
         return "\n\n".join(parts)
