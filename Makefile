@@ -55,21 +55,22 @@ report: $(STAMP)
 	$(PY) -m lnnmpc.train.cli report "$(RUN)"
 
 # make compare RUNS="<run folder> <run folder> ..." OUT=curves.png [LABELS="'raw inputs' 'symlog inputs'"]
-#              [METRICS=value_loss,reward_loss]
-#   learning curves of several runs on one plot (and the numbers in curves.csv); METRICS adds train.csv panels
+#              [METRICS=value_loss,reward_loss] [POOL="3 seeds"]
+#   learning curves of several runs on one plot (and the numbers in curves.csv); METRICS adds train.csv panels;
+#   POOL=LABEL adds one curve of all the runs' seeds together (one configuration, other master seeds)
 RUNS    ?=
 LABELS  ?=
 METRICS ?=
+POOL    ?=
 compare: $(STAMP)
 	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS)) \
-		$(if $(METRICS),--metrics $(METRICS))
+		$(if $(METRICS),--metrics $(METRICS)) $(if $(POOL),--pool "$(POOL)")
 
 # make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"] [FALLS=400]
 #   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means), the speed and
 #   the commands that started them; FALLS=R adds each run's last evaluation split at return R (walker falls);
 #   POOL=LABEL adds one column of all the runs' seeds together (one configuration, other master seeds)
 FALLS ?=
-POOL ?=
 tables: $(STAMP)
 	$(PY) -m lnnmpc.train.tables $(RUNS) $(if $(LABELS),--labels $(LABELS)) $(if $(FALLS),--falls-below $(FALLS)) \
 		$(if $(POOL),--pool "$(POOL)")

@@ -41,6 +41,21 @@ def test_compare_plots_each_run_and_writes_the_numbers(tmp_path):
         ("baseline", "10000", 350.0), ("baseline", "20000", 700.0), ("liquid", "10000", 100.0)]
 
 
+def test_compare_pools_one_configurations_runs_into_one_more_curve(tmp_path, capsys):
+    a = _run(tmp_path / "a", "tdmpc2", {10000: [[100, 300], [500, 500]], 20000: [[600, 600], [800, 800]]}, seeds=2)
+    b = _run(tmp_path / "b", "tdmpc2", {10000: [[0, 0]], 30000: [[900, 900]]}, seeds=1, seed=7)
+    out = str(tmp_path / "pooled.png")
+    assert main([a, b, "--labels", "A", "B", "--pool", "A+B", "--metrics", "", "--out", out]) == 0
+    with open(str(tmp_path / "pooled.csv")) as f:
+        rows = [r for r in csv.DictReader(f) if r["label"] == "A+B"]
+    # only the step both runs evaluated; seed means 200 / 500 / 0: mean 233.3, std over seeds 205.5
+    assert [(r["env_step"], round(float(r["mean"]), 1), round(float(r["std"]), 1), r["seeds"]) for r in rows] == [
+        ("10000", 233.3, 205.5, "3")]
+    c = _run(tmp_path / "c", "cfc-zp-det", {10000: [[1.0]]})
+    assert main([a, c, "--pool", "x", "--out", out]) == 2
+    assert "differ in agent: 'tdmpc2' != 'cfc-zp-det'" in capsys.readouterr().err
+
+
 def test_compare_refuses_bad_input_with_the_reason(tmp_path, capsys):
     a = _run(tmp_path / "a", "tdmpc2", {10000: [[1.0]]})
     with pytest.raises(ConfigError, match="1 label\\(s\\) for 2 run\\(s\\)"):

@@ -13,6 +13,10 @@ median over seeds of the metric at each logged step, shaded between the seeds' m
 where a metric spans more than two decades. A run that does not log a metric (TD-MPC2's ``consistency_loss`` is
 the liquid agents' ``prediction_loss``) is left out of that panel; a metric no run logs is refused with the ones
 they do. Those numbers go to ``<figure>-metrics.csv`` (run, label, metric, env_step, median, min, max, seeds).
+
+``--pool LABEL`` adds one curve of all the runs' seeds together, at the evaluation steps they all have: runs of one
+configuration started with other master seeds (a one-GPU session runs walker one seed per call) read as one run;
+runs that differ in anything but how they were launched (:data:`LAUNCH_KEYS`) are refused, naming the setting.
 """
 
 from __future__ import annotations
@@ -59,6 +63,54 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
                        "agent": c["agent"], "eval_obs": c["eval_obs"], "table": table, "rows": rows,
                        "config": config})
     return curves
+
+
+# Settings that say how a run was launched, not what it learns: runs differing only in these may be pooled.
+LAUNCH_KEYS = ("seed", "seeds", "steps", "devices", "out", "name", "runs_dir", "compile_cache", "compile_ahead",
+               "tensorboard", "wandb", "checkpoint_every", "keep_checkpoints", "eval_every")
+
+
+def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
+    """``"key: a_value != b_value"`` for every key (nested ones dotted) that both dicts have with different values;
+    a key only one of them has is not a difference (fields added to the code since the older run)."""
+    out = []
+    for key in sorted(a.keys() & b.keys()):
+        if isinstance(a[key], dict) and isinstance(b[key], dict):
+            out += config_differences(a[key], b[key], f"{prefix}{key}.")
+        elif a[key] != b[key]:
+            out.append(f"{prefix}{key}: {a[key]!r} != {b[key]!r}")
+    return out
+
+
+def pool_curves(curves: list[dict], label: str) -> dict:
+    """One curve (as :func:`load_curves` gives) of every seed of ``curves``' runs, at the evaluation steps all of
+    them have: runs of one configuration started with different master seeds (or seed counts, or device counts)
+    read as one run of all their seeds. Seeds are renumbered run after run.
+
+    Raises ConfigError naming the settings two runs differ in (other than :data:`LAUNCH_KEYS`; the agent's
+    resolved settings are compared too), or when the runs share no evaluation step."""
+    if len(curves) < 2:
+        raise ConfigError("--pool needs at least two run folders")
+    first = curves[0]
+    for curve in curves[1:]:
+        a, b = ({k: v for k, v in c["config"]["config"].items() if k not in LAUNCH_KEYS} for c in (first, curve))
+        differ = config_differences(a, b) + config_differences(first["config"].get("agent_config", {}),
+                                                               curve["config"].get("agent_config", {}), "agent.")
+        if differ:
+            raise ConfigError(f"cannot pool {first['run']!r} and {curve['run']!r}: they differ in "
+                              + "; ".join(differ) + f" (only {', '.join(LAUNCH_KEYS)} may differ)")
+    steps = set.intersection(*({int(r["env_step"]) for r in c["rows"]} for c in curves))
+    if not steps:
+        raise ConfigError("the runs to pool share no evaluation step: " + "; ".join(
+            f"{c['run']!r} evaluated at {sorted({int(r['env_step']) for r in c['rows']})}" for c in curves))
+    rows, offset = [], 0
+    for curve in curves:
+        seeds = sorted({int(r["seed"]) for r in curve["rows"]})
+        index = {s: offset + i for i, s in enumerate(seeds)}
+        rows += [{**r, "seed": index[int(r["seed"])]} for r in curve["rows"] if int(r["env_step"]) in steps]
+        offset += len(seeds)
+    return {**first, "run": " + ".join(c["run"] for c in curves), "label": label, "rows": rows,
+            "table": eval_table(rows)}
 
 
 def metric_series(curves: list[dict], metrics: list[str]) -> dict[str, list[dict]]:
@@ -206,13 +258,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--title", default=None)
     p.add_argument("--metrics", default="", help="train.csv metrics to plot beside the returns, comma separated "
                    "(e.g. value_loss,reward_loss,grad_norm)")
+    p.add_argument("--pool", default=None, metavar="LABEL",
+                   help="also one curve LABEL of every run's seeds together, at the steps all runs evaluated "
+                   "(runs of one configuration with other master seeds; refused for runs that differ otherwise)")
     args = p.parse_args(argv)
 
     def compare() -> str:
         curves = load_curves(args.runs, args.labels)
+        pooled = [pool_curves(curves, args.pool)] if args.pool is not None else []
         names = [m for m in args.metrics.split(",") if m]
-        metrics = metric_series(curves, names) if names else None
-        paths = write_comparison(curves, args.out, args.title, metrics)
+        metrics = metric_series(curves, names) if names else None  # per run (a pooled curve has no train.csv)
+        paths = write_comparison(curves + pooled, args.out, args.title, metrics)
         return f"wrote {', '.join(paths[:-1])} and {paths[-1]}"
 
     return command_status(compare)

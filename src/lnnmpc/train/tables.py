@@ -27,7 +27,7 @@ import sys
 import numpy as np
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.compare import load_curves
+from lnnmpc.train.compare import load_curves, pool_curves
 from lnnmpc.train.config import ConfigError, command_status
 from lnnmpc.train.report import LAST_EVALUATIONS, eval_table
 
@@ -88,54 +88,6 @@ def falls_table(curves: list[dict], threshold: float) -> str:
                      f"{returns.mean():.1f} | {f'{others.mean():.1f}' if others.size else ''} | "
                      f"{returns.max():.1f} | {returns.min():.1f} |")
     return "\n".join(lines)
-
-
-# Settings that say how a run was launched, not what it learns: runs differing only in these may be pooled.
-LAUNCH_KEYS = ("seed", "seeds", "steps", "devices", "out", "name", "runs_dir", "compile_cache", "compile_ahead",
-               "tensorboard", "wandb", "checkpoint_every", "keep_checkpoints", "eval_every")
-
-
-def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
-    """``"key: a_value != b_value"`` for every key (nested ones dotted) that both dicts have with different values;
-    a key only one of them has is not a difference (fields added to the code since the older run)."""
-    out = []
-    for key in sorted(a.keys() & b.keys()):
-        if isinstance(a[key], dict) and isinstance(b[key], dict):
-            out += config_differences(a[key], b[key], f"{prefix}{key}.")
-        elif a[key] != b[key]:
-            out.append(f"{prefix}{key}: {a[key]!r} != {b[key]!r}")
-    return out
-
-
-def pool_curves(curves: list[dict], label: str) -> dict:
-    """One curve (as :func:`load_curves` gives) of every seed of ``curves``' runs, at the evaluation steps all of
-    them have: runs of one configuration started with different master seeds (or seed counts, or device counts)
-    read as one run of all their seeds. Seeds are renumbered run after run.
-
-    Raises ConfigError naming the settings two runs differ in (other than :data:`LAUNCH_KEYS`; the agent's
-    resolved settings are compared too), or when the runs share no evaluation step."""
-    if len(curves) < 2:
-        raise ConfigError("--pool needs at least two run folders")
-    first = curves[0]
-    for curve in curves[1:]:
-        a, b = ({k: v for k, v in c["config"]["config"].items() if k not in LAUNCH_KEYS} for c in (first, curve))
-        differ = config_differences(a, b) + config_differences(first["config"].get("agent_config", {}),
-                                                               curve["config"].get("agent_config", {}), "agent.")
-        if differ:
-            raise ConfigError(f"cannot pool {first['run']!r} and {curve['run']!r}: they differ in "
-                              + "; ".join(differ) + f" (only {', '.join(LAUNCH_KEYS)} may differ)")
-    steps = set.intersection(*({int(r["env_step"]) for r in c["rows"]} for c in curves))
-    if not steps:
-        raise ConfigError("the runs to pool share no evaluation step: " + "; ".join(
-            f"{c['run']!r} evaluated at {sorted({int(r['env_step']) for r in c['rows']})}" for c in curves))
-    rows, offset = [], 0
-    for curve in curves:
-        seeds = sorted({int(r["seed"]) for r in curve["rows"]})
-        index = {s: offset + i for i, s in enumerate(seeds)}
-        rows += [{**r, "seed": index[int(r["seed"])]} for r in curve["rows"] if int(r["env_step"]) in steps]
-        offset += len(seeds)
-    return {**first, "run": " + ".join(c["run"] for c in curves), "label": label, "rows": rows,
-            "table": eval_table(rows)}
 
 
 def speed_row(run: str, seeds: int) -> dict:
