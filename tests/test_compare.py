@@ -54,6 +54,11 @@ def test_compare_pools_one_configurations_runs_into_one_more_curve(tmp_path, cap
     c = _run(tmp_path / "c", "cfc-zp-det", {10000: [[1.0]]})
     assert main([a, c, "--pool", "x", "--out", out]) == 2
     assert "differ in agent: 'tdmpc2' != 'cfc-zp-det'" in capsys.readouterr().err
+    # "+" pools some runs only: the pooled pair and c as two curves
+    assert main([f"{a}+{b}", c, "--labels", "A+B", "C", "--out", out]) == 0
+    with open(str(tmp_path / "pooled.csv")) as f:
+        rows = [(r["label"], r["env_step"], round(float(r["mean"]), 1), r["seeds"]) for r in csv.DictReader(f)]
+    assert rows == [("A+B", "10000", 233.3, "3"), ("C", "10000", 1.0, "1")]
 
 
 def test_compare_refuses_bad_input_with_the_reason(tmp_path, capsys):
@@ -211,6 +216,17 @@ def test_tables_pool_runs_of_one_configuration_into_one_column(tmp_path, capsys)
     d = _run(tmp_path / "d", "tdmpc2", {40: [[1.0]]}, seeds=1)
     assert tables_main([a, d, "--pool", "x"]) == 2
     assert "share no evaluation step" in capsys.readouterr().err
+    # runs joined by "+" are one pooled column of their own (default label: the pooled seed count); the per-run
+    # tables list the pooled runs one by one
+    assert tables_main([f"{a}+{b}", a, "--returns-only"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("| env steps | tdmpc2 (3 seeds pooled): mean ± std |")
+    assert lines[2].startswith("| 10 | 300.0 ± 238.0 | 216.0 | 200 / 600 / 100 | 400.0 ± 223.6 |")
+    assert tables_main([f"{a}+{b}", "--labels", "AB", "--commands-only"]) == 0
+    labels = [line for line in capsys.readouterr().out.splitlines() if line.startswith("# AB")]
+    assert labels == ["# AB: a", "# AB: b"]
+    assert tables_main([f"{a}+{c}"]) == 2
+    assert "differ in batch_size: 256 != 128" in capsys.readouterr().err
 
 
 def test_reports_without_plots_rewrite_only_the_summary(tmp_path):

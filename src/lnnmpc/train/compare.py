@@ -17,6 +17,7 @@ they do. Those numbers go to ``<figure>-metrics.csv`` (run, label, metric, env_s
 ``--pool LABEL`` adds one curve of all the runs' seeds together, at the evaluation steps they all have: runs of one
 configuration started with other master seeds (a one-GPU session runs walker one seed per call) read as one run;
 runs that differ in anything but how they were launched (:data:`LAUNCH_KEYS`) are refused, naming the setting.
+To pool some runs only, join them with ``+`` (``runs/a0+runs/a1 runs/b0+runs/b1+runs/b2``: two curves).
 """
 
 from __future__ import annotations
@@ -43,7 +44,9 @@ def default_label(config: dict) -> str:
 
 def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
     """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table", "rows", "config"} (table:
-    :func:`eval_table` rows; rows: eval.csv's own rows; config: the run's whole config.json).
+    :func:`eval_table` rows; rows: eval.csv's own rows; config: the run's whole config.json). A run given as
+    ``a+b+c`` (run folders joined by ``+``, where no folder has that name) is those runs pooled into one
+    (:func:`pool_curves`; label by default the first run's, with the pooled seed count).
 
     Raises ConfigError naming a folder that is not a run folder or has no evaluation yet, and a label count
     that does not match the runs."""
@@ -53,6 +56,14 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
         raise ConfigError(f"{len(labels)} label(s) for {len(runs)} run(s); give one label per run or none")
     curves = []
     for i, run in enumerate(runs):
+        if "+" in run and not os.path.exists(run):
+            pooled = pool_curves(load_curves(run.split("+")), "")
+            seeds = len({int(r["seed"]) for r in pooled["rows"]})
+            pooled["label"] = labels[i] if labels else f"{default_label(pooled['config'])} ({seeds} seeds pooled)"
+            for part in pooled["parts"]:  # (for the per-run tables: speed, commands)
+                part["label"] = f"{pooled['label']}: {os.path.basename(os.path.normpath(part['run']))}"
+            curves.append(pooled)
+            continue
         config = runfolder.read_config(run)
         rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
         table = eval_table(rows)
@@ -109,8 +120,14 @@ def pool_curves(curves: list[dict], label: str) -> dict:
         index = {s: offset + i for i, s in enumerate(seeds)}
         rows += [{**r, "seed": index[int(r["seed"])]} for r in curve["rows"] if int(r["env_step"]) in steps]
         offset += len(seeds)
-    return {**first, "run": " + ".join(c["run"] for c in curves), "label": label, "rows": rows,
-            "table": eval_table(rows)}
+    return {**first, "run": "+".join(c["run"] for c in curves), "label": label, "rows": rows,
+            "table": eval_table(rows), "parts": run_curves(curves)}
+
+
+def run_curves(curves: list[dict]) -> list[dict]:
+    """``curves`` with each pooled one (:func:`pool_curves`) replaced by the runs it pools: for what is read per
+    run folder (train.csv metrics, timing.csv, the commands)."""
+    return [part for curve in curves for part in curve.get("parts", [curve])]
 
 
 def metric_series(curves: list[dict], metrics: list[str]) -> dict[str, list[dict]]:
@@ -118,7 +135,8 @@ def metric_series(curves: list[dict], metrics: list[str]) -> dict[str, list[dict
     "median", "min", "max", "seeds"}} from each run's train.csv (arrays over the logged steps; median, min and max
     over the seeds logging a step).
 
-    Raises ConfigError for a metric that no run logs, naming the metrics they do."""
+    Raises ConfigError for a metric that no run logs, naming the metrics they do. A pooled curve
+    (:func:`pool_curves`) has no train.csv of its own and is left out."""
     runs = [c["run"] for c in curves]
     panels = {run: training_panels(runfolder.read_csv(os.path.join(run, "train.csv")))
               if os.path.exists(os.path.join(run, "train.csv")) else {} for run in runs}

@@ -4,16 +4,18 @@
     python -m lnnmpc.train.tables runs/a --speed-only        # or --returns-only, --commands-only
     python -m lnnmpc.train.tables runs/a runs/b --returns-only --falls-below 400   # walker: who fell, and the rest
     python -m lnnmpc.train.tables runs/seed0 runs/seed1 runs/seed2 --pool "3 seeds"  # one-seed runs as one
+    python -m lnnmpc.train.tables runs/a0+runs/a1 runs/b0+runs/b1 --labels A B       # two pooled columns
 
 Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds × episodes,
 the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations. A run that
 has no evaluation at a step another run has gets an empty cell. With ``--falls-below R``, a second table looks at
 each run's last evaluation: how many episodes returned under R (a walker that fell), the mean of all, of the others,
 and the best and worst episode. ``--pool LABEL`` adds one column of all the runs' seeds together (runs of one
-configuration started with other master seeds, e.g. one seed per call on a one-GPU machine). Speed (from each
-``timing.csv``, wall seconds): the process's start (imports, devices; runs since the trainer logs it), compilation,
-training chunks (total, count, environment steps per chunk per seed), the median chunk's environment steps per
-second over all seeds and per seed, evaluations (total, count) and everything logged.
+configuration started with other master seeds, e.g. one seed per call on a one-GPU machine); runs joined by ``+``
+(``runs/a0+runs/a1``) are one pooled column of their own, and the speed and commands tables list them one by one.
+Speed (from each ``timing.csv``, wall seconds): the process's start (imports, devices; runs since the trainer logs
+it), compilation, training chunks (total, count, environment steps per chunk per seed), the median chunk's
+environment steps per second over all seeds and per seed, evaluations (total, count) and everything logged.
 Commands: the command line that started each run (``config.json``'s provenance). These are the tables the READMEs
 under ``experiments/results/`` quote.
 """
@@ -27,7 +29,7 @@ import sys
 import numpy as np
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.compare import load_curves, pool_curves
+from lnnmpc.train.compare import load_curves, pool_curves, run_curves
 from lnnmpc.train.config import ConfigError, command_status
 from lnnmpc.train.report import LAST_EVALUATIONS, eval_table
 
@@ -157,8 +159,8 @@ def main(argv: list[str] | None = None) -> int:
         parts = [returns_table(curves + pooled)] if args.returns_only or not only else []
         if parts and args.falls_below is not None:
             parts.append(falls_table(curves + pooled, args.falls_below))
-        parts += [speed_table(curves)] if args.speed_only or not only else []
-        parts += [commands_block(curves)] if args.commands_only or not only else []
+        parts += [speed_table(run_curves(curves))] if args.speed_only or not only else []
+        parts += [commands_block(run_curves(curves))] if args.commands_only or not only else []
         return "\n\n".join(parts)
 
     return command_status(tables)
