@@ -227,6 +227,8 @@ def test_tables_pool_runs_of_one_configuration_into_one_column(tmp_path, capsys)
     assert labels == ["# AB: a", "# AB: b"]
     assert tables_main([f"{a}+{c}"]) == 2
     assert "differ in batch_size: 256 != 128" in capsys.readouterr().err
+    assert tables_main([f"{a}+{b}", a, "--pool", "x"]) == 2  # a's seeds would count twice
+    assert "cannot pool a run with itself" in capsys.readouterr().err
 
 
 def test_reports_without_plots_rewrite_only_the_summary(tmp_path):

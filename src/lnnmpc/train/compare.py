@@ -102,6 +102,10 @@ def pool_curves(curves: list[dict], label: str) -> dict:
     resolved settings are compared too), or when the runs share no evaluation step."""
     if len(curves) < 2:
         raise ConfigError("--pool needs at least two run folders")
+    folders = [os.path.realpath(c["run"]) for c in run_curves(curves)]
+    twice = sorted({f for f in folders if folders.count(f) > 1})
+    if twice:
+        raise ConfigError(f"cannot pool a run with itself: {', '.join(map(repr, twice))} given more than once")
     first = curves[0]
     for curve in curves[1:]:
         a, b = ({k: v for k, v in c["config"]["config"].items() if k not in LAUNCH_KEYS} for c in (first, curve))
