@@ -125,16 +125,13 @@ def q_logits_of_heads(config, q_params, heads: jax.Array, z: jax.Array, action: 
     own mask (from other random numbers than the full ensemble's). Where ``heads`` names as many heads as there
     are (the liquid agents' 2 of 2), the ensemble runs as it is and its outputs are put in that order (gathering
     the parameters would only add kernels)."""
-    num_q, k = jax.tree_util.tree_leaves(q_params)[0].shape[0], heads.shape[0]
-    x = jnp.concatenate([z, action], axis=-1)
+    every = heads.shape[0] == jax.tree_util.tree_leaves(q_params)[0].shape[0]
+    run = q_params if every else jax.tree_util.tree_map(lambda p: p[heads], q_params)
+    n, x = heads.shape[0], jnp.concatenate([z, action], axis=-1)
     rngs = {"dropout": dropout_key} if dropout_key is not None else {}
-    if k == num_q:
-        logits = q_ensemble(config, num_q).apply({"params": q_params}, jnp.broadcast_to(x, (num_q, *x.shape)),
-                                                 dropout_key is None, rngs=rngs)
-        return logits[heads]
-    chosen = jax.tree_util.tree_map(lambda p: p[heads], q_params)
-    return q_ensemble(config, k).apply({"params": chosen}, jnp.broadcast_to(x, (k, *x.shape)),
-                                       dropout_key is None, rngs=rngs)
+    logits = q_ensemble(config, n).apply({"params": run}, jnp.broadcast_to(x, (n, *x.shape)), dropout_key is None,
+                                         rngs=rngs)
+    return logits[heads] if every else logits
 
 
 class WorldModel(nn.Module):
