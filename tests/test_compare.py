@@ -211,6 +211,9 @@ def test_tables_pool_runs_of_one_configuration_into_one_column(tmp_path, capsys)
     c = _run(tmp_path / "c", "tdmpc2", {10: [[1.0]]}, seeds=1, batch_size=128)
     assert tables_main([a, c, "--pool", "x"]) == 2
     assert "differ in batch_size: 256 != 128" in capsys.readouterr().err
+    noisy = _run(tmp_path / "noisy", "tdmpc2", {10: [[1.0]]}, seeds=1, obs={"noise": 0.1})  # a corruption set
+    assert tables_main([a, noisy, "--pool", "x"]) == 2
+    assert "differ in eval_obs: {} != {'obs_noise': 0.1}; obs: {} != {'obs_noise': 0.1}" in capsys.readouterr().err
     assert tables_main([a, "--pool", "x"]) == 2
     assert "--pool needs at least two run folders" in capsys.readouterr().err
     d = _run(tmp_path / "d", "tdmpc2", {40: [[1.0]]}, seeds=1)

@@ -224,6 +224,19 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
         check_agent_config(run, make_agent("tdmpc2", 5, 1).config)
     check_agent_config(run, make_agent("tdmpc2", 5, 1, overrides={
         **old_clip, "model.simnorm_layer_norm": "false"}).config)
+    # A liquid run from before the latent head (and its width and group size) existed resumes as it was; a head
+    # run from before latent_size resumes with the head's latent as wide as the cell's state (latent_size 0).
+    for overrides, missing in (({}, ("latent_head", "simnorm_dim", "latent_size")),
+                               ({"model.latent_head": "simnorm"}, ("latent_size",))):
+        agent = make_agent("cfc-zp-det", 5, 1, overrides=overrides).config
+        old = agent_config_json(agent)
+        for name in missing:
+            del old["model"][name]
+        runfolder.write_config(run, TrainConfig(task="cartpole-balance", out=run), {"agent_config": old})
+        check_agent_config(run, agent)
+    with pytest.raises(ConfigError, match="model.latent_size: checkpoint has 0, now 16"):
+        check_agent_config(run, make_agent("cfc-zp-det", 5, 1, overrides={"model.latent_head": "simnorm",
+                                                                           "model.latent_size": 16}).config)
 
 
 def test_cli_exits_with_status_2_and_the_message(capsys):

@@ -16,7 +16,7 @@ they do. Those numbers go to ``<figure>-metrics.csv`` (run, label, metric, env_s
 
 ``--pool LABEL`` adds one curve of all the runs' seeds together, at the evaluation steps they all have: runs of one
 configuration started with other master seeds (a one-GPU session runs walker one seed per call) read as one run;
-runs that differ in anything but how they were launched (:data:`LAUNCH_KEYS`) are refused, naming the setting.
+runs that differ in anything but how they were launched (:func:`pooling_differences`) are refused, naming it.
 To pool some runs only, join them with ``+`` (``runs/a0+runs/a1 runs/b0+runs/b1+runs/b2``: two curves).
 """
 
@@ -29,7 +29,8 @@ import sys
 import numpy as np
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.config import ConfigError, command_status
+from lnnmpc.train.compat import agent_config_changes
+from lnnmpc.train.config import RESUMABLE_CHANGES, ConfigError, TrainConfig, command_status
 from lnnmpc.train.references import references
 from lnnmpc.train.report import eval_table, training_panels
 
@@ -76,21 +77,21 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
     return curves
 
 
-# Settings that say how a run was launched, not what it learns: runs differing only in these may be pooled.
-LAUNCH_KEYS = ("seed", "seeds", "steps", "devices", "out", "name", "runs_dir", "compile_cache", "compile_ahead",
-               "tensorboard", "wandb", "checkpoint_every", "keep_checkpoints", "eval_every")
+# What runs may differ in and still be pooled, beyond what a resumed run may change (RESUMABLE_CHANGES).
+POOLABLE = ("seed", "seeds", "eval_every")
 
 
-def config_differences(a: dict, b: dict, prefix: str = "") -> list[str]:
-    """``"key: a_value != b_value"`` for every key (nested ones dotted) that both dicts have with different values;
-    a key only one of them has is not a difference (fields added to the code since the older run)."""
-    out = []
-    for key in sorted(a.keys() & b.keys()):
-        if isinstance(a[key], dict) and isinstance(b[key], dict):
-            out += config_differences(a[key], b[key], f"{prefix}{key}.")
-        elif a[key] != b[key]:
-            out.append(f"{prefix}{key}: {a[key]!r} != {b[key]!r}")
-    return out
+def pooling_differences(a: dict, b: dict) -> list[str]:
+    """``"key: a_value != b_value"`` for every setting two runs' config.json contents ``a`` and ``b`` differ in that
+    keeps them from being pooled: their :class:`TrainConfig` as a resumed run must keep it
+    (:meth:`TrainConfig.resumable_part`; defaults for fields an older run lacks) but for :data:`POOLABLE`, and the
+    agent's resolved settings (``agent.``-prefixed; :func:`lnnmpc.train.compat.agent_config_changes`)."""
+    config_a, config_b = (TrainConfig.from_dict(c["config"]).resumable_part() for c in (a, b))
+    keys = sorted(config_a.keys() | config_b.keys())
+    differ = [f"{key}: {config_a.get(key)!r} != {config_b.get(key)!r}" for key in keys
+              if key not in POOLABLE and config_a.get(key) != config_b.get(key)]
+    return differ + [f"agent.{key}: {x!r} != {y!r}"
+                     for key, x, y in agent_config_changes(a.get("agent_config", {}), b.get("agent_config", {}))]
 
 
 def pool_curves(curves: list[dict], label: str) -> dict:
@@ -98,8 +99,8 @@ def pool_curves(curves: list[dict], label: str) -> dict:
     them have: runs of one configuration started with different master seeds (or seed counts, or device counts)
     read as one run of all their seeds. Seeds are renumbered run after run.
 
-    Raises ConfigError naming the settings two runs differ in (other than :data:`LAUNCH_KEYS`; the agent's
-    resolved settings are compared too), or when the runs share no evaluation step."""
+    Raises ConfigError naming the settings two runs differ in (:func:`pooling_differences`), or when the runs share
+    no evaluation step."""
     if len(curves) < 2:
         raise ConfigError("--pool needs at least two run folders")
     folders = [os.path.realpath(c["run"]) for c in run_curves(curves)]
@@ -108,12 +109,11 @@ def pool_curves(curves: list[dict], label: str) -> dict:
         raise ConfigError(f"cannot pool a run with itself: {', '.join(map(repr, twice))} given more than once")
     first = curves[0]
     for curve in curves[1:]:
-        a, b = ({k: v for k, v in c["config"]["config"].items() if k not in LAUNCH_KEYS} for c in (first, curve))
-        differ = config_differences(a, b) + config_differences(first["config"].get("agent_config", {}),
-                                                               curve["config"].get("agent_config", {}), "agent.")
+        differ = pooling_differences(first["config"], curve["config"])
         if differ:
             raise ConfigError(f"cannot pool {first['run']!r} and {curve['run']!r}: they differ in "
-                              + "; ".join(differ) + f" (only {', '.join(LAUNCH_KEYS)} may differ)")
+                              + "; ".join(differ) + f" (only {', '.join(POOLABLE + RESUMABLE_CHANGES)} may differ, "
+                              "overrides where the agent's settings agree)")
     steps = set.intersection(*({int(r["env_step"]) for r in c["rows"]} for c in curves))
     if not steps:
         raise ConfigError("the runs to pool share no evaluation step: " + "; ".join(

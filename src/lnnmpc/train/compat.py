@@ -54,7 +54,8 @@ def agent_config_json(agent_config) -> dict:
 # saved agent configuration lacks the field resumes when the field has that value now.
 ADDED_AGENT_FIELDS = {"nll_beta": 0.0, "model.input_transform": "none", "joint_grad_clip": False,
                       "model.simnorm_layer_norm": False, "flat_optimizer": False, "rollout_steps": 1,
-                      "scan_unroll": 1, "rollout_stride": 1}
+                      "scan_unroll": 1, "rollout_stride": 1, "model.latent_head": "none", "model.simnorm_dim": 8,
+                      "model.latent_size": 0}
 
 
 def check_agent_config(run: str, agent_config) -> None:
@@ -63,18 +64,12 @@ def check_agent_config(run: str, agent_config) -> None:
     not use (``agent_config.inactive_fields()``, e.g. free bits of a det variant) are not compared; a field the
     checkpoint predates (:data:`ADDED_AGENT_FIELDS`) must hold its old behaviour's value. The error names the
     ``--set`` flags that restore the checkpoint's values."""
-    saved = _flatten(runfolder.read_config(run).get("agent_config") or {})
-    current = _flatten(agent_config_json(agent_config))
+    current = agent_config_json(agent_config)
     inactive = agent_config.inactive_fields() if hasattr(agent_config, "inactive_fields") else set()
-    changed, restore = [], []
-    for key in sorted(saved.keys() | current.keys()):
-        if key in inactive:
-            continue
-        was = saved[key] if key in saved else ADDED_AGENT_FIELDS.get(key)
-        if was != current.get(key):
-            changed.append(f"{key}: checkpoint has {was!r}, now {current.get(key)!r}")
-            if was is not None and key in current:
-                restore.append(f"--set {key}={was}")
+    changes = agent_config_changes(runfolder.read_config(run).get("agent_config") or {}, current, inactive)
+    changed = [f"{key}: checkpoint has {was!r}, now {now!r}" for key, was, now in changes]
+    current_keys = flatten_config(current).keys()
+    restore = [f"--set {key}={was}" for key, was, _ in changes if was is not None and key in current_keys]
     if changed:
         how = f"Restore them with {' '.join(restore)}" if restore else "Restore them with --set KEY=VALUE"
         raise ConfigError(f"cannot resume {run}: the agent's hyperparameters differ from the checkpoint's "
@@ -82,11 +77,28 @@ def check_agent_config(run: str, agent_config) -> None:
                           f"{how} or start a new run")
 
 
-def _flatten(tree: dict, prefix: str = "") -> dict:
+def agent_config_changes(a: dict, b: dict, inactive: set[str] | frozenset[str] = frozenset()) -> list[tuple]:
+    """(key, value in ``a``, value in ``b``) for every flattened agent setting (``model.latent_size``) on which two
+    ``agent_config`` JSONs differ, keys in ``inactive`` skipped; a field one of them predates takes its old
+    behaviour's value from :data:`ADDED_AGENT_FIELDS` (None for any other missing field)."""
+    flat_a, flat_b = flatten_config(a), flatten_config(b)
+    changes = []
+    for key in sorted(flat_a.keys() | flat_b.keys()):
+        if key in inactive:
+            continue
+        was = flat_a[key] if key in flat_a else ADDED_AGENT_FIELDS.get(key)
+        now = flat_b[key] if key in flat_b else ADDED_AGENT_FIELDS.get(key)
+        if was != now:
+            changes.append((key, was, now))
+    return changes
+
+
+def flatten_config(tree: dict, prefix: str = "") -> dict:
+    """A nested config dict as one level with dotted keys (``{"model": {"mlp_dim": 192}}`` -> ``model.mlp_dim``)."""
     flat = {}
     for key, value in tree.items():
         if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
+            flat.update(flatten_config(value, f"{prefix}{key}."))
         else:
             flat[f"{prefix}{key}"] = value
     return flat
