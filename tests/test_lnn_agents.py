@@ -164,7 +164,8 @@ def test_simnorm_latent_head_puts_latents_and_predictions_on_simplices():
                                 batch["dt"][:T])[-1]
     hs = agent.encode_sequence(state.params, h_T, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
     assert hs.shape[-1] == 8 and not on_simplices(hs)
-    np.testing.assert_allclose(np.asarray(zs), np.asarray(agent.latent_of(state.params, hs)), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(zs), np.asarray(agent.latent_of(state.params, hs, batch["obs"][T:])),
+                               rtol=1e-5, atol=1e-6)
     # ... the planner's transition predicts a latent on the simplices too, and the actor plans from the head's z.
     z_next = agent._apply(state.params, zs[0], batch["action"][T], method="transition")
     assert z_next.shape == (B, 12) and on_simplices(z_next)
@@ -172,7 +173,8 @@ def test_simnorm_latent_head_puts_latents_and_predictions_on_simplices():
                          explore=False, first_step=jnp.array(True))
     z_act = acting_latent(agent, state, carry, batch["obs"][0, 0])
     assert z_act.shape == (12,) and on_simplices(z_act)
-    np.testing.assert_allclose(np.asarray(z_act), np.asarray(agent.latent_of(state.params, carry.h)), rtol=1e-6)
+    z_head = agent.latent_of(state.params, carry.h, batch["obs"][0, 0])
+    np.testing.assert_allclose(np.asarray(z_act), np.asarray(z_head), rtol=1e-6)
     # Adam's first step moves every parameter by its group's learning rate: the head's is the encoder's (× 0.3).
     ones = jax.tree_util.tree_map(jnp.ones_like, state.params)
     step, _ = agent.model_tx.update(ones, agent.model_tx.init(state.params), state.params)
@@ -198,6 +200,56 @@ def test_simnorm_latent_head_puts_latents_and_predictions_on_simplices():
         tiny("cfc-zp-det", latent_head="simnorm", latent_size=-8)
     with pytest.raises(ValueError, match=r"latent_head='ln' is not supported; allowed values: \['none', 'simnorm'\]"):
         tiny("cfc-zp-det", latent_head="ln")
+
+
+def test_latent_obs_skip_head_reads_state_and_observation():
+    """``latent_obs_skip``: z = SimNorm(LayerNorm(W [h, transform(o)] + b)) against float64 numpy, for the window's
+    latents (each state with the observation it has just read), the actor's and the one-observation encoder's;
+    only with a SimNorm head."""
+    from lnnmpc.agents.registry import acting_latent
+
+    agent = tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=4, latent_size=12, latent_obs_skip="true",
+                 input_transform="symlog")
+    state = quick_jit(agent.init)(jax.random.key(0))
+    head = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), state.params["latent_head"])
+    kernel, bias = head["Dense_0"]["kernel"], head["Dense_0"]["bias"]
+    assert kernel.shape == (8 + OBS, 12)
+
+    def reference(h, obs):  # float64 numpy
+        o = np.asarray(obs, np.float64)
+        x = np.concatenate([np.asarray(h, np.float64), np.sign(o) * np.log1p(np.abs(o))], axis=-1) @ kernel + bias
+        x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-5)
+        x = x * head["LayerNorm_0"]["scale"] + head["LayerNorm_0"]["bias"]
+        g = np.exp(x.reshape(*x.shape[:-1], -1, 4) - x.reshape(*x.shape[:-1], -1, 4).max(-1, keepdims=True))
+        return (g / g.sum(-1, keepdims=True)).reshape(x.shape)
+
+    batch, T = window(agent), agent.config.burn_in
+    _, (zs, _) = quick_jit(lambda p: agent.world_model_loss(p, state.target_q, batch, jax.random.key(1)))(
+        state.params)
+    h_T = agent.encode_sequence(state.params, batch["h_prev"][0], batch["obs"][:T], batch["prev_action"][:T],
+                                batch["dt"][:T])[-1]
+    hs = agent.encode_sequence(state.params, h_T, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
+    np.testing.assert_allclose(np.asarray(zs), reference(hs, batch["obs"][T:]), rtol=1e-4, atol=1e-6)
+    # The observation moves the latent at a fixed state (the skip is live).
+    moved = agent.latent_of(state.params, hs[0], batch["obs"][T] + 1.0)
+    assert float(jnp.abs(moved - zs[0]).max()) > 1e-3
+    obs, dt = batch["obs"][0, 0], batch["dt"][0, 0]
+    _, carry = agent.act(state, agent.initial_carry(), obs, dt, jax.random.key(2), explore=False,
+                         first_step=jnp.array(True))
+    np.testing.assert_allclose(np.asarray(acting_latent(agent, state, carry, obs)), reference(carry.h, obs),
+                               rtol=1e-4, atol=1e-6)
+    # TD-MPC2's per-observation encode: the head on the one-observation history's state and that observation.
+    h1 = agent._apply(state.params, jnp.zeros((1, 8)), obs[None], jnp.zeros((1, ACT)), jnp.ones((1,)),
+                      method="encode_step")
+    np.testing.assert_allclose(np.asarray(agent._apply(state.params, obs[None], method="encode")),
+                               reference(h1, obs[None]), rtol=1e-4, atol=1e-6)
+    assert "model.latent_obs_skip" not in agent.config.inactive_fields()
+    assert "model.latent_obs_skip" in tiny("cfc-zp-det").config.inactive_fields()
+    with pytest.raises(ValueError, match=r"latent_obs_skip=True needs latent_head='simnorm': without a head the "
+                                         r"latent is the encoder state \(hidden_size=8\)"):
+        tiny("cfc-zp-det", latent_obs_skip=True)
+    with pytest.raises(ValueError, match=r"the latent needs the observation the state has read"):
+        agent._apply(state.params, hs[0], method="latent")
 
 
 @pytest.mark.parametrize("name", ["cfc-op-det", "ltc-op-stoch"])

@@ -66,13 +66,13 @@ def test_closed_loop_training_stays_finite(run):
     assert np.isfinite(np.asarray(ts.carry.h)).all() and float(np.abs(np.asarray(ts.carry.h)).max()) > 0
 
 
-# Every variant, and cfc-zp-det with its latent read off the state by a SimNorm head (12 wide, groups of 4, on the
-# tiny encoder state of 8).
+# Every variant, and cfc-zp-det with its latent read off the state and the observation by a SimNorm head (12 wide,
+# groups of 4, on the tiny encoder state of 8; without the skip in test_lnn_agents.py).
 VARIANTS = [(name, {}) for name in LNN_AGENTS] + [
-    ("cfc-zp-det", {"latent_head": "simnorm", "simnorm_dim": 4, "latent_size": 12})]
+    ("cfc-zp-det", {"latent_head": "simnorm", "simnorm_dim": 4, "latent_size": 12, "latent_obs_skip": True})]
 
 
-@pytest.mark.parametrize("name,overrides", VARIANTS, ids=[n + ("-simnorm" if o else "") for n, o in VARIANTS])
+@pytest.mark.parametrize("name,overrides", VARIANTS, ids=[n + ("-simnorm-obs-skip" if o else "") for n, o in VARIANTS])
 def test_each_variant_learns_a_fixed_batch_and_trains_on_cartpole(run, name, overrides):
     """One compiled program per variant: init, UPDATES updates on one fixed window batch, UPDATES on sampled
     cartpole-swingup windows, then two deterministic act steps."""

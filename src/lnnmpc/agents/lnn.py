@@ -125,7 +125,7 @@ class LNNConfig(TDMPC2Config):
         if self.rollout_steps == 1:
             unused.add("rollout_stride")
         if self.model.latent_head == "none":
-            unused |= {"model.simnorm_dim", "model.latent_size"}
+            unused |= {"model.simnorm_dim", "model.latent_size", "model.latent_obs_skip"}
         return unused
 
 
@@ -181,13 +181,14 @@ class LNNTDMPC2(TDMPC2):
         h = jax.lax.stop_gradient(h)
         with jax.named_scope("encoder_window"):
             hs = self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
-        return self.latent_of(params, hs)
+        return self.latent_of(params, hs, batch["obs"][T:])
 
-    def latent_of(self, params, h: jax.Array) -> jax.Array:
-        """The latents z (..., Z) of encoder states h (..., N): h itself (Z = N), or its SimNorm head's output."""
+    def latent_of(self, params, h: jax.Array, obs: jax.Array) -> jax.Array:
+        """The latents z (..., Z) of encoder states h (..., N) that have just read obs (..., d): h itself (Z = N),
+        or its SimNorm head's output (of [h, o] with ``latent_obs_skip``)."""
         if self.config.model.latent_head == "none":
             return h
-        return self._apply(params, h, method="latent")
+        return self._apply(params, h, obs, method="latent")
 
     # -------------------------------------------------------------------------------------- losses
     def prediction_loss(self, params, z: jax.Array, action: jax.Array,
@@ -333,7 +334,7 @@ class LNNTDMPC2(TDMPC2):
         carry = self._start(carry, first_step)
         h = self._encode_one(params, carry, obs, dt)
         k_plan, k_model = jax.random.split(key)
-        latent = {"z": self.latent_of(params, h), "key": jax.random.key_data(k_model)}
+        latent = {"z": self.latent_of(params, h, obs), "key": jax.random.key_data(k_model)}
         action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params),
                                     latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step)
         return action, LNNCarry(h=h, prev_action=action, plan_mean=mean)

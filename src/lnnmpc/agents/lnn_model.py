@@ -11,7 +11,10 @@ Components (``h`` the encoder state (B, N), N = ``hidden_size``; ``a`` actions (
   (ZP det only; SPEC §4's "a linear projection and SimNorm may follow") reads the latent off the state as
   TD-MPC2's encoder ends, ``z_t = SimNorm(LayerNorm(W h_t + b))`` (``latent_size`` units, N unless set,
   groups of ``simnorm_dim``), and the predictor ends the same way, so that the planner rolls latents on
-  TD-MPC2's simplices (512 wide in TD-MPC2's 5M model); the encoder still carries h.
+  TD-MPC2's simplices (512 wide in TD-MPC2's 5M model); the encoder still carries h. With
+  ``latent_obs_skip=True`` the head also reads the observation the state has just taken in,
+  ``z_t = SimNorm(LayerNorm(W [h_t, o_t] + b))`` (o_t transformed as the cell's input): a skip past the
+  cell's N-wide state, as TD-MPC2's encoder reads o_t directly (not in the thesis).
   ``input_transform="symlog"`` feeds the cell sign(o)·log(1 + |o|) instead of o (the thesis feeds o; walker's
   joint velocities reach ±50 and saturate the CfC backbone, see :data:`INPUT_TRANSFORMS`). The LTC runs
   ``ode_unfolds`` (6) hybrid-Euler sub-steps and reads no output map (``output_mapping="none"``).
@@ -69,6 +72,7 @@ class LNNModelConfig:
     latent_head: str = "none"  # one of LATENT_HEADS
     simnorm_dim: int = 8  # SimNorm group size of latent_head="simnorm"
     latent_size: int = 0  # width of latent_head="simnorm"'s latent; 0: hidden_size
+    latent_obs_skip: bool = False  # latent_head="simnorm" reads [h_t, o_t] instead of h_t
 
     def __post_init__(self):
         for name in ("obs_dim", "action_dim", "hidden_size", "mlp_dim", "num_bins", "backbone_units",
@@ -83,6 +87,7 @@ class LNNModelConfig:
         check_choice("cfc_mode", self.cfc_mode, CFC_MODES)
         check_choice("input_transform", self.input_transform, INPUT_TRANSFORMS)
         check_choice("latent_head", self.latent_head, LATENT_HEADS)
+        check_choice("latent_obs_skip", self.latent_obs_skip, (False, True))
         check_fraction("q_dropout", self.q_dropout)
         if self.latent_head == "simnorm":
             if self.objective != "zp" or self.stochastic:
@@ -92,8 +97,9 @@ class LNNModelConfig:
                 size = f"latent_size={self.latent_size}" if self.latent_size else f"hidden_size={self.hidden_size}"
                 raise ValueError(f"latent_head='simnorm' needs a latent size divisible by simnorm_dim, got {size}, "
                                  f"simnorm_dim={self.simnorm_dim}")
-        elif self.latent_size:
-            raise ValueError(f"latent_size={self.latent_size} needs latent_head='simnorm': without a head the latent "
+        elif self.latent_size or self.latent_obs_skip:
+            name = f"latent_size={self.latent_size}" if self.latent_size else "latent_obs_skip=True"
+            raise ValueError(f"{name} needs latent_head='simnorm': without a head the latent "
                              f"is the encoder state (hidden_size={self.hidden_size})")
         if not 0 < self.min_sigma <= self.max_sigma:
             raise ValueError(f"need 0 < min_sigma <= max_sigma, got min_sigma={self.min_sigma!r}, "
@@ -118,11 +124,14 @@ def make_cell(config: LNNModelConfig) -> nn.Module:
     return LTCCell(config.hidden_size, ode_unfolds=config.ode_unfolds, output_mapping="none")
 
 
+def transformed_obs(config: LNNModelConfig, obs: jax.Array) -> jax.Array:
+    """Observations (..., d) as the encoder reads them (``input_transform``)."""
+    return symlog(obs) if config.input_transform == "symlog" else obs
+
+
 def encoder_input(config: LNNModelConfig, obs: jax.Array, prev_action: jax.Array) -> jax.Array:
     """The cell's input x = [transform(o), a_prev] (..., d + A) from obs (..., d) and prev_action (..., A)."""
-    if config.input_transform == "symlog":
-        obs = symlog(obs)
-    return jnp.concatenate([obs, prev_action], axis=-1)
+    return jnp.concatenate([transformed_obs(config, obs), prev_action], axis=-1)
 
 
 def gaussian_params(raw: jax.Array, min_sigma: float, max_sigma: float) -> tuple[jax.Array, jax.Array]:
@@ -150,9 +159,17 @@ class LNNWorldModel(WorldModel):
                              output_layer_norm=bool(simnorm))
         self.setup_heads()
 
-    def latent(self, h: jax.Array) -> jax.Array:
-        """The latent z (..., N) the heads and the planner read, from encoder states h (..., N)."""
-        return self.latent_head(h) if self.config.latent_head == "simnorm" else h
+    def latent(self, h: jax.Array, obs: jax.Array | None = None) -> jax.Array:
+        """The latent z (..., Z) the heads and the planner read, from encoder states h (..., N) and, with
+        ``latent_obs_skip``, the observations (..., d) they have just read (required then)."""
+        c = self.config
+        if c.latent_head == "none":
+            return h
+        if c.latent_obs_skip:
+            if obs is None:
+                raise ValueError("latent_obs_skip=True: the latent needs the observation the state has read")
+            h = jnp.concatenate([h, transformed_obs(c, obs)], axis=-1)
+        return self.latent_head(h)
 
     def encode_step(self, h: jax.Array, obs: jax.Array, prev_action: jax.Array, dt: jax.Array) -> jax.Array:
         """One encoder step: h (B, N), obs (B, d), prev_action (B, A), dt (B,) or (B, 1) -> h' (B, N)."""
@@ -183,7 +200,7 @@ class LNNWorldModel(WorldModel):
         """Latent (..., N) of a one-observation history (zero state, zero previous action, Δt = 1)."""
         zeros = jnp.zeros((*obs.shape[:-1], self.config.hidden_size), obs.dtype)
         return self.latent(self._encode_flat(zeros, obs, jnp.zeros((*obs.shape[:-1], self.config.action_dim),
-                                                                   obs.dtype)))
+                                                                   obs.dtype)), obs)
 
     def next(self, z: jax.Array, action: jax.Array) -> jax.Array:
         """Mean transition (..., N) (TD-MPC2's ``next``; used when planning without the predictor's noise)."""
@@ -198,5 +215,5 @@ class LNNWorldModel(WorldModel):
     def __call__(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, ...]:
         """Touches every component (used by ``init``); obs (d,), action (A,)."""
         h = self.encode_step(jnp.zeros((1, self.config.hidden_size)), obs[None], action[None], jnp.ones((1,)))[0]
-        z = self.latent(h)
+        z = self.latent(h, obs)
         return self.predict(z, action), self.reward(z, action), self.policy(z), self.q(z, action)

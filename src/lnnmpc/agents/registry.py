@@ -67,10 +67,10 @@ def task_default_overrides(name: str, task: str, overrides: dict[str, Any] | Non
 
 def acting_latent(agent, state, carry, obs):
     """The latent the agent plans from after reading ``obs``, (..., N): an LNN agent's latent of its encoder state
-    h_t (its acting carry's ``h``, after :meth:`act`; h itself unless ``latent_head="simnorm"``), else
+    h_t (its acting carry's ``h``, after :meth:`act` read ``obs``; h itself unless ``latent_head="simnorm"``), else
     (``tdmpc2``) its per-observation encoder applied to ``obs``."""
     if hasattr(carry, "h"):
-        return agent.latent_of(state.params, carry.h)
+        return agent.latent_of(state.params, carry.h, obs)
     return agent._apply(state.params, obs, method="encode")
 
 
