@@ -202,6 +202,27 @@ def test_simnorm_latent_head_puts_latents_and_predictions_on_simplices():
         tiny("cfc-zp-det", latent_head="ln")
 
 
+def np_latent_head(params, h, obs, group: int) -> np.ndarray:
+    """float64 numpy SimNorm latent head on [h, symlog(obs)]: [Dense -> LayerNorm -> Mish] -> Dense -> LayerNorm ->
+    SimNorm (groups of ``group``), with the hidden layer when ``params`` has one."""
+    p = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), params)
+    o = np.asarray(obs, np.float64)
+    x = np.concatenate([np.asarray(h, np.float64), np.sign(o) * np.log1p(np.abs(o))], axis=-1)
+
+    def dense_norm(x, i):
+        x = x @ p[f"Dense_{i}"]["kernel"] + p[f"Dense_{i}"]["bias"]
+        x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-5)
+        return x * p[f"LayerNorm_{i}"]["scale"] + p[f"LayerNorm_{i}"]["bias"]
+
+    if "Dense_1" in p:
+        x = dense_norm(x, 0)
+        x = x * np.tanh(np.log1p(np.exp(x)))  # Mish
+    x = dense_norm(x, 1 if "Dense_1" in p else 0)
+    g = x.reshape(*x.shape[:-1], -1, group)
+    g = np.exp(g - g.max(-1, keepdims=True))
+    return (g / g.sum(-1, keepdims=True)).reshape(x.shape)
+
+
 def test_latent_obs_skip_head_reads_state_and_observation():
     """``latent_obs_skip``: z = SimNorm(LayerNorm(W [h, transform(o)] + b)) against float64 numpy, for the window's
     latents (each state with the observation it has just read), the actor's and the one-observation encoder's;
@@ -211,17 +232,8 @@ def test_latent_obs_skip_head_reads_state_and_observation():
     agent = tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=4, latent_size=12, latent_obs_skip="true",
                  input_transform="symlog")
     state = quick_jit(agent.init)(jax.random.key(0))
-    head = jax.tree_util.tree_map(lambda x: np.asarray(x, np.float64), state.params["latent_head"])
-    kernel, bias = head["Dense_0"]["kernel"], head["Dense_0"]["bias"]
-    assert kernel.shape == (8 + OBS, 12)
-
-    def reference(h, obs):  # float64 numpy
-        o = np.asarray(obs, np.float64)
-        x = np.concatenate([np.asarray(h, np.float64), np.sign(o) * np.log1p(np.abs(o))], axis=-1) @ kernel + bias
-        x = (x - x.mean(-1, keepdims=True)) / np.sqrt(x.var(-1, keepdims=True) + 1e-5)
-        x = x * head["LayerNorm_0"]["scale"] + head["LayerNorm_0"]["bias"]
-        g = np.exp(x.reshape(*x.shape[:-1], -1, 4) - x.reshape(*x.shape[:-1], -1, 4).max(-1, keepdims=True))
-        return (g / g.sum(-1, keepdims=True)).reshape(x.shape)
+    assert state.params["latent_head"]["Dense_0"]["kernel"].shape == (8 + OBS, 12)
+    reference = lambda h, obs: np_latent_head(state.params["latent_head"], h, obs, 4)
 
     batch, T = window(agent), agent.config.burn_in
     _, (zs, _) = quick_jit(lambda p: agent.world_model_loss(p, state.target_q, batch, jax.random.key(1)))(
@@ -250,6 +262,27 @@ def test_latent_obs_skip_head_reads_state_and_observation():
         tiny("cfc-zp-det", latent_obs_skip=True)
     with pytest.raises(ValueError, match=r"the latent needs the observation the state has read"):
         agent._apply(state.params, hs[0], method="latent")
+
+
+def test_latent_head_hidden_layer_as_tdmpc2_encoder():
+    """``latent_head_hidden=W``: Dense -> LayerNorm -> Mish (W wide) before the head's output layer, against float64
+    numpy, with and without the observation skip; only with a SimNorm head."""
+    h = 0.5 * jnp.tanh(jax.random.normal(jax.random.key(3), (B, 8)))
+    obs = 3.0 * jax.random.normal(jax.random.key(4), (B, OBS))
+    for skip in (False, True):
+        agent = tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=4, latent_size=12, latent_head_hidden=6,
+                     latent_obs_skip=skip, input_transform="symlog")
+        params = quick_jit(agent.init)(jax.random.key(0)).params
+        head = params["latent_head"]
+        assert head["Dense_0"]["kernel"].shape == (8 + OBS * skip, 6) and head["Dense_1"]["kernel"].shape == (6, 12)
+        z = agent.latent_of(params, h, obs)
+        np.testing.assert_allclose(np.asarray(z), np_latent_head(head, h, obs if skip else obs[:, :0], 4),
+                                   rtol=1e-4, atol=1e-6)
+    assert "model.latent_head_hidden" in tiny("cfc-zp-det").config.inactive_fields()
+    with pytest.raises(ValueError, match=r"latent_head_hidden=6 needs latent_head='simnorm'"):
+        tiny("cfc-zp-det", latent_head_hidden=6)
+    with pytest.raises(ValueError, match=r"latent_head_hidden=-1 is invalid; expected an integer >= 0"):
+        tiny("cfc-zp-det", latent_head="simnorm", simnorm_dim=4, latent_head_hidden=-1)
 
 
 @pytest.mark.parametrize("name", ["cfc-op-det", "ltc-op-stoch"])

@@ -226,8 +226,10 @@ def test_resume_check_ignores_unused_fields_and_knows_fields_added_since(tmp_pat
         **old_clip, "model.simnorm_layer_norm": "false"}).config)
     # A liquid run from before the latent head (and its width and group size) existed resumes as it was; a head
     # run from before latent_size resumes with the head's latent as wide as the cell's state (latent_size 0).
-    for overrides, missing in (({}, ("latent_head", "simnorm_dim", "latent_size", "latent_obs_skip")),
-                               ({"model.latent_head": "simnorm"}, ("latent_size", "latent_obs_skip"))):
+    for overrides, missing in (({}, ("latent_head", "simnorm_dim", "latent_size", "latent_obs_skip",
+                                     "latent_head_hidden")),
+                               ({"model.latent_head": "simnorm"}, ("latent_size", "latent_obs_skip",
+                                                                   "latent_head_hidden"))):
         agent = make_agent("cfc-zp-det", 5, 1, overrides=overrides).config
         old = agent_config_json(agent)
         for name in missing:

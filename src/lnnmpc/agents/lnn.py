@@ -125,7 +125,7 @@ class LNNConfig(TDMPC2Config):
         if self.rollout_steps == 1:
             unused.add("rollout_stride")
         if self.model.latent_head == "none":
-            unused |= {"model.simnorm_dim", "model.latent_size", "model.latent_obs_skip"}
+            unused |= {"model.simnorm_dim", "model.latent_size", "model.latent_obs_skip", "model.latent_head_hidden"}
         return unused
 
 

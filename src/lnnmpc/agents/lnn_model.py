@@ -14,7 +14,9 @@ Components (``h`` the encoder state (B, N), N = ``hidden_size``; ``a`` actions (
   TD-MPC2's simplices (512 wide in TD-MPC2's 5M model); the encoder still carries h. With
   ``latent_obs_skip=True`` the head also reads the observation the state has just taken in,
   ``z_t = SimNorm(LayerNorm(W [h_t, o_t] + b))`` (o_t transformed as the cell's input): a skip past the
-  cell's N-wide state, as TD-MPC2's encoder reads o_t directly (not in the thesis).
+  cell's N-wide state, as TD-MPC2's encoder reads o_t directly (not in the thesis). ``latent_head_hidden=W``
+  puts one hidden layer (Dense -> LayerNorm -> Mish, W wide) before the head's output layer, the shape of
+  TD-MPC2's encoder (256 wide in its 5M model).
   ``input_transform="symlog"`` feeds the cell sign(o)·log(1 + |o|) instead of o (the thesis feeds o; walker's
   joint velocities reach ±50 and saturate the CfC backbone, see :data:`INPUT_TRANSFORMS`). The LTC runs
   ``ode_unfolds`` (6) hybrid-Euler sub-steps and reads no output map (``output_mapping="none"``).
@@ -73,6 +75,7 @@ class LNNModelConfig:
     simnorm_dim: int = 8  # SimNorm group size of latent_head="simnorm"
     latent_size: int = 0  # width of latent_head="simnorm"'s latent; 0: hidden_size
     latent_obs_skip: bool = False  # latent_head="simnorm" reads [h_t, o_t] instead of h_t
+    latent_head_hidden: int = 0  # width of one hidden layer in latent_head="simnorm"; 0: none (linear head)
 
     def __post_init__(self):
         for name in ("obs_dim", "action_dim", "hidden_size", "mlp_dim", "num_bins", "backbone_units",
@@ -80,6 +83,7 @@ class LNNModelConfig:
             check_int_at_least(name, getattr(self, name), 1)
         check_int_at_least("backbone_layers", self.backbone_layers, 0)
         check_int_at_least("latent_size", self.latent_size, 0)
+        check_int_at_least("latent_head_hidden", self.latent_head_hidden, 0)
         check_int_at_least("num_q", self.num_q, 2)
         check_choice("cell", self.cell, CELLS)
         check_choice("objective", self.objective, OBJECTIVES)
@@ -97,8 +101,9 @@ class LNNModelConfig:
                 size = f"latent_size={self.latent_size}" if self.latent_size else f"hidden_size={self.hidden_size}"
                 raise ValueError(f"latent_head='simnorm' needs a latent size divisible by simnorm_dim, got {size}, "
                                  f"simnorm_dim={self.simnorm_dim}")
-        elif self.latent_size or self.latent_obs_skip:
-            name = f"latent_size={self.latent_size}" if self.latent_size else "latent_obs_skip=True"
+        elif self.latent_size or self.latent_obs_skip or self.latent_head_hidden:
+            name = (f"latent_size={self.latent_size}" if self.latent_size else "latent_obs_skip=True"
+                    if self.latent_obs_skip else f"latent_head_hidden={self.latent_head_hidden}")
             raise ValueError(f"{name} needs latent_head='simnorm': without a head the latent "
                              f"is the encoder state (hidden_size={self.hidden_size})")
         if not 0 < self.min_sigma <= self.max_sigma:
@@ -154,7 +159,8 @@ class LNNWorldModel(WorldModel):
         self.encoder = make_cell(c)
         simnorm = c.simnorm_dim if c.latent_head == "simnorm" else 0
         if simnorm:
-            self.latent_head = MLP((), c.latent_dim, simnorm, output_layer_norm=True)
+            hidden = (c.latent_head_hidden,) if c.latent_head_hidden else ()
+            self.latent_head = MLP(hidden, c.latent_dim, simnorm, output_layer_norm=True)
         self.predictor = MLP((c.mlp_dim, c.mlp_dim), c.target_dim * (2 if c.stochastic else 1), simnorm,
                              output_layer_norm=bool(simnorm))
         self.setup_heads()

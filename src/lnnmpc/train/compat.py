@@ -55,7 +55,8 @@ def agent_config_json(agent_config) -> dict:
 ADDED_AGENT_FIELDS = {"nll_beta": 0.0, "model.input_transform": "none", "joint_grad_clip": False,
                       "model.simnorm_layer_norm": False, "flat_optimizer": False, "rollout_steps": 1,
                       "scan_unroll": 1, "rollout_stride": 1, "model.latent_head": "none", "model.simnorm_dim": 8,
-                      "model.latent_size": 0, "model.latent_obs_skip": False}
+                      "model.latent_size": 0, "model.latent_obs_skip": False,
+                      "model.latent_head_hidden": 0}
 
 
 def check_agent_config(run: str, agent_config) -> None:
