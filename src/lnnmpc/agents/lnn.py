@@ -56,7 +56,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from lnnmpc.agents import math as M
-from lnnmpc.agents.lnn_model import LNNModelConfig, LNNWorldModel, encoder_input, make_cell
+from lnnmpc.agents.lnn_model import HEAD_ONLY_SETTINGS, LNNModelConfig, LNNWorldModel, encoder_input, make_cell
 from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
 from lnnmpc.agents.returns import lambda_returns
 from lnnmpc.agents.tdmpc2 import TDMPC2, AgentState, TDMPC2Config, make_optimizers
@@ -125,7 +125,7 @@ class LNNConfig(TDMPC2Config):
         if self.rollout_steps == 1:
             unused.add("rollout_stride")
         if self.model.latent_head == "none":
-            unused |= {"model.simnorm_dim", "model.latent_size", "model.latent_obs_skip", "model.latent_head_hidden"}
+            unused |= {f"model.{name}" for name in ("simnorm_dim", *HEAD_ONLY_SETTINGS)}
         return unused
 
 

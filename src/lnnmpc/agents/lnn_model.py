@@ -48,6 +48,9 @@ INPUT_TRANSFORMS = ("none", "symlog")
 # What turns the encoder state h into the latent z: "none" (z = h, this project's default) or "simnorm"
 # (Dense -> LayerNorm -> SimNorm, as TD-MPC2's encoder output; self-predictive deterministic variants only).
 LATENT_HEADS = ("none", "simnorm")
+# Settings of latent_head="simnorm" that must keep their defaults without the head (simnorm_dim, read only by the
+# head, may keep any value).
+HEAD_ONLY_SETTINGS = ("latent_size", "latent_obs_skip", "latent_head_hidden")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,11 +104,11 @@ class LNNModelConfig:
                 size = f"latent_size={self.latent_size}" if self.latent_size else f"hidden_size={self.hidden_size}"
                 raise ValueError(f"latent_head='simnorm' needs a latent size divisible by simnorm_dim, got {size}, "
                                  f"simnorm_dim={self.simnorm_dim}")
-        elif self.latent_size or self.latent_obs_skip or self.latent_head_hidden:
-            name = (f"latent_size={self.latent_size}" if self.latent_size else "latent_obs_skip=True"
-                    if self.latent_obs_skip else f"latent_head_hidden={self.latent_head_hidden}")
-            raise ValueError(f"{name} needs latent_head='simnorm': without a head the latent "
-                             f"is the encoder state (hidden_size={self.hidden_size})")
+        else:
+            set_without_head = [f"{name}={getattr(self, name)}" for name in HEAD_ONLY_SETTINGS if getattr(self, name)]
+            if set_without_head:
+                raise ValueError(f"{set_without_head[0]} needs latent_head='simnorm': without a head the latent "
+                                 f"is the encoder state (hidden_size={self.hidden_size})")
         if not 0 < self.min_sigma <= self.max_sigma:
             raise ValueError(f"need 0 < min_sigma <= max_sigma, got min_sigma={self.min_sigma!r}, "
                              f"max_sigma={self.max_sigma!r}")
