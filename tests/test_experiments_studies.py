@@ -366,6 +366,39 @@ def test_device_batch_start_refuses_while_an_earlier_starts_jobs_run(tmp_path):
     assert names == ["first", "done", "second", "third"]
 
 
+def test_device_batch_relaunch_waits_for_the_earlier_process_of_its_job(tmp_path):
+    """Starting a job again (a run cut by its timeout, resumed from its checkpoint) waits for its earlier launch
+    to end, at most RELAUNCH_WAIT seconds, then refuses naming it (other running jobs need no FORCE for that);
+    once it has ended it relaunches: the earlier wall seconds kept, the log appended, the exit status renewed."""
+    import subprocess
+    import time
+
+    env = _fake_gpu_machine(tmp_path, 1, "echo launched; exit 0")
+    batch = tmp_path / "runs" / "batch"
+    batch.mkdir(parents=True)
+    (batch / "commands.txt").write_text("cut (GPU 0): --task cartpole-balance\n")
+    (batch / "cut.log").write_text("first launch\n")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("cut  --task cartpole-balance\n")
+    start = lambda: subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "20"], capture_output=True,
+                                   text=True, timeout=60, env={**env, "RELAUNCH_WAIT": "0"}, cwd=tmp_path)
+    refused = start()  # no cut.rc: the earlier process still runs
+    assert refused.returncode == 2, refused.stderr
+    assert "cut: its earlier launch still runs after 0 s" in refused.stderr and "not relaunched" in refused.stderr
+    assert (batch / "commands.txt").read_text().count("cut (GPU 0)") == 1
+    (batch / "cut.rc").write_text("124\n")  # ended by its timeout, checkpoint written
+    (batch / "cut.seconds").write_text("590.5\n")
+    relaunched = start()
+    assert relaunched.returncode == 0, relaunched.stderr
+    assert (batch / "cut.earlier-seconds").read_text() == "590.5\n"
+    deadline = time.monotonic() + 20  # the relaunched job runs in the background: its exit status, when written
+    while not (batch / "cut.rc").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (batch / "cut.rc").read_text().strip() == "0" and float((batch / "cut.seconds").read_text()) < 60
+    assert (batch / "cut.log").read_text() == "first launch\nlaunched\n"
+    assert "earlier launches: 590.5 s" in relaunched.stdout
+
+
 def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     """``ingest_batch.sh``: a device batch's results.tar.gz becomes study-runs/ folders, their effective-rank
     figures and every agent's row of the study's table (the job line's --agents dropped)."""

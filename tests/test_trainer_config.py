@@ -338,3 +338,35 @@ def test_new_walker_runs_of_lnn_agents_record_the_walker_defaults(tmp_path):
                                                  overrides={"input_transform": "symlog"}), {})
     rerun = validate(TrainConfig(**walker, agent="cfc-zp-det", out=recorded))
     assert rerun.config.overrides == {"input_transform": "symlog"}
+
+
+def test_a_run_folder_trains_in_one_process_at_a_time(tmp_path):
+    """runfolder.hold_run: while one process holds a run folder (a run finishing its chunk and checkpoint after
+    SIGTERM), training in it from another process is refused before compiling, naming the folder and the holder's
+    pid; the lock goes with the holder."""
+    import subprocess
+    import sys
+
+    import lnnmpc
+
+    run = str(tmp_path / "run")
+    os.makedirs(run)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from lnnmpc.train import runfolder; "
+         f"lock = runfolder.hold_run({run!r}); print('held', flush=True); sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        config = TrainConfig(task="cartpole-balance", small=True, out=run, steps=200, seed_steps=100)
+        with pytest.raises(ConfigError, match=f"run folder '{run}' is in use by another training process "
+                                              rf"\(pid {holder.pid}\)"):
+            lnnmpc.train(config)
+        assert not os.path.exists(os.path.join(run, runfolder.CONFIG_FILE))  # nothing written
+    finally:
+        holder.communicate("")  # the holder exits: its lock goes with it
+    with runfolder.hold_run(run) as lock:
+        assert open(os.path.join(run, runfolder.LOCK_FILE)).read() == f"{os.getpid()}\n"
+        with pytest.raises(ConfigError, match=rf"in use by another training process \(pid {os.getpid()}\)"):
+            runfolder.hold_run(run)  # a second open of the lock conflicts even within one process
+    assert lock.closed
+    runfolder.hold_run(run).close()

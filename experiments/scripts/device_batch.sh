@@ -4,7 +4,9 @@
 #   device_batch.sh start JOBS SECONDS REPORT   launch every job of the file JOBS (each under `timeout -s TERM
 #                                               SECONDS`, in its own session so that it outlives the call), then
 #                                               report after REPORT seconds or when all have ended; refused
-#                                               while jobs of an earlier start still run (FORCE=1 overrides)
+#                                               while jobs of an earlier start still run (FORCE=1 overrides);
+#                                               a job of JOBS launched before (a run cut by its timeout, to be
+#                                               resumed) first waits for its earlier process to end
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
 #   device_batch.sh after NAME GPU COMMAND...   once the job NAME of the running batch has ended (its exit status
 #                                               is in runs/batch/NAME.rc), run COMMAND on GPU in the background
@@ -111,13 +113,14 @@ report_after() {
         tr '\r' '\n' <"$log" | grep -v -E '^\s*$|^\[' | tail -1 | cut -c1-150
         local ended=${log%.log}
         [ -f "$ended.seconds" ] && echo "ended (exit $(cat "$ended.rc" 2>/dev/null)) $(cat "$ended.seconds") s after its launch"
+        [ -f "$ended.earlier-seconds" ] && echo "earlier launches: $(paste -sd+ "$ended.earlier-seconds") s"
     done
     grep -l -E "Traceback|Error" "$BATCH"/*.log 2>/dev/null | while read -r bad; do
         echo "--- $bad"; tail -15 "$bad"; done
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used,memory.total --format=csv,noheader 2>/dev/null \
         | tee "$BATCH/nvidia-smi.txt"
     if [ -n "${OUT:-}" ]; then
-        tar czf "$OUT/results.tar.gz" --exclude=checkpoints -C "$BATCH" .
+        tar czf "$OUT/results.tar.gz" --exclude=checkpoints --exclude=.lock -C "$BATCH" .
     fi
 }
 
@@ -133,6 +136,22 @@ start)
     [ "${gpus:-0}" -ge 1 ] || gpus=1
     all_alone "$jobs" || exit 2
     placement=$(place_jobs "$jobs" "$gpus") || exit 2
+    # A job of this file that an earlier start launched is relaunched: its run resumes from its checkpoint, so it
+    # waits (RELAUNCH_WAIT seconds at most, default 300) for the earlier process, which after its timeout's SIGTERM
+    # still finishes its chunk and writes that checkpoint; two processes must not train in one run folder.
+    for name in $(job_lines "$jobs" | awk '{print $1}' | sed 's/@.*//'); do
+        batch_jobs | grep -qxF "$name" || continue
+        waited=0
+        until [ -f "$BATCH/$name.rc" ]; do
+            if [ "$waited" -ge "${RELAUNCH_WAIT:-300}" ]; then
+                echo "$name: its earlier launch still runs after ${RELAUNCH_WAIT:-300} s (no $BATCH/$name.rc):" \
+                    "not relaunched" >&2
+                exit 2
+            fi
+            sleep 2
+            waited=$((waited + 2))
+        done
+    done
     running=$(still_running)
     if [ -n "$running" ] && [ "${FORCE:-0}" != 1 ]; then
         echo "jobs of an earlier start still run (no $BATCH/<name>.rc yet): $running; 'wait' for them first," \
@@ -168,9 +187,13 @@ start)
         # bar's "including compilation", the process's start and exit included)
         took="echo \"\$(date +%s.%N) \$begun\" | awk '{printf \"%.1f\\n\", \$1 - \$2}' >$BATCH/$name.seconds"
         command="begun=\$(date +%s.%N); $command; rc=\$?; $took; echo \$rc >$BATCH/$name.rc"
+        if [ -f "$BATCH/$name.rc" ]; then  # relaunched: the earlier launches' wall seconds kept, its log appended
+            cat "$BATCH/$name.seconds" >>"$BATCH/$name.earlier-seconds" 2>/dev/null
+            rm -f "$BATCH/$name.rc" "$BATCH/$name.seconds"
+        fi
         visible=$gpu
         [ "$gpu" = all ] && visible=$(seq -s, 0 $((gpus - 1)))
-        CUDA_VISIBLE_DEVICES=$visible setsid nohup bash -c "$command" >"$BATCH/$name.log" 2>&1 </dev/null &
+        CUDA_VISIBLE_DEVICES=$visible setsid nohup bash -c "$command" >>"$BATCH/$name.log" 2>&1 </dev/null &
         echo "$name (GPU $gpu): $args" | tee -a "$BATCH/commands.txt"
     done
     report_after "$report"

@@ -1,14 +1,15 @@
 """Run folders: naming, the saved configuration and the CSV logs.
 
 A run folder holds ``config.json`` (the resolved :class:`TrainConfig` plus derived settings), ``train.csv``,
-``eval.csv``, ``checkpoints/``, ``curve.png`` and ``summary.md``. CSV files are appended to after every chunk and
-truncated back to a checkpoint's environment step when a run resumes, so that they always describe exactly the
-training that the newest checkpoint continues.
+``eval.csv``, ``checkpoints/``, ``curve.png``, ``summary.md`` and ``.lock`` (:func:`hold_run`). CSV files are
+appended to after every chunk and truncated back to a checkpoint's environment step when a run resumes, so that
+they always describe exactly the training that the newest checkpoint continues.
 """
 
 from __future__ import annotations
 
 import csv
+import fcntl
 import io
 import json
 import os
@@ -20,6 +21,7 @@ from typing import IO
 from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag
 
 CONFIG_FILE = "config.json"
+LOCK_FILE = ".lock"  # held (flock) by the process training in the folder; holds its pid
 
 
 def new_run_path(config: TrainConfig) -> str:
@@ -38,6 +40,28 @@ def ensure_writable(folder: str) -> None:
             pass
     except OSError as error:
         raise ConfigError(f"output folder {folder!r} is not writable: {error.strerror or error}") from None
+
+
+def hold_run(folder: str) -> IO:
+    """An exclusive lock on the run folder ``folder`` (existing) for as long as the returned file stays open (a
+    context manager; the process's exit releases it too): a second training process on the same folder, e.g. a
+    resume started while the first still finishes its chunk and checkpoint after SIGTERM, raises ConfigError
+    naming the folder and the holder's pid instead of writing the same checkpoints and CSV files at once."""
+    handle = open(os.path.join(folder, LOCK_FILE), "a+")
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.seek(0)
+        holder = handle.read().strip() or "unknown"
+        handle.close()
+        raise ConfigError(f"run folder {folder!r} is in use by another training process (pid {holder}): wait for "
+                          "it to end (on SIGTERM or Ctrl-C it saves a checkpoint after its running chunk) or give "
+                          "another output folder") from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"{os.getpid()}\n")
+    handle.flush()
+    return handle
 
 
 def check_creatable(folder: str) -> None:

@@ -60,12 +60,14 @@ class TrainingDiverged(RuntimeError):
 def train(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None) -> str:
     """Trains (or resumes, see :func:`validate`) and returns the run folder.
 
-    Raises ConfigError before compiling for a bad configuration, :class:`TrainingDiverged` on NaN/Inf, and
-    KeyboardInterrupt after saving a checkpoint on Ctrl-C.
+    Raises ConfigError before compiling for a bad configuration or a run folder that another process is training
+    in (:func:`runfolder.hold_run`), :class:`TrainingDiverged` on NaN/Inf, and KeyboardInterrupt after saving a
+    checkpoint on Ctrl-C.
     """
     setup = validate(config, resume=resume, steps=steps)
-    enable_compile_cache(setup.config.compile_cache)
-    return _Run(setup).execute()
+    with runfolder.hold_run(setup.run):
+        enable_compile_cache(setup.config.compile_cache)
+        return _Run(setup).execute()
 
 
 class _Run:
