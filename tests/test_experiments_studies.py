@@ -399,6 +399,53 @@ def test_device_batch_relaunch_waits_for_the_earlier_process_of_its_job(tmp_path
     assert "earlier launches: 590.5 s" in relaunched.stdout
 
 
+def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp_path):
+    """``start``'s REPORT counts from the start itself (a relaunch's wait for its earlier process included), and
+    while a report waits it packs report.txt and results.tar.gz into $OUT every SNAPSHOT_EVERY seconds, so that a
+    device call cut at its limit still brings back the batch's state."""
+    import subprocess
+    import tarfile
+    import threading
+    import time
+
+    out = tmp_path / "out"
+    out.mkdir()
+    env = _fake_gpu_machine(tmp_path, 1, "echo launched; sleep 8", OUT=str(out), SNAPSHOT_EVERY="1",
+                            RELAUNCH_WAIT="30")
+    batch = tmp_path / "runs" / "batch"
+    batch.mkdir(parents=True)
+    (batch / "commands.txt").write_text("cut (GPU 0): --task cartpole-balance\n")
+    (batch / "cut.log").write_text("first launch\n")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("cut  --task cartpole-balance\n")
+    ended = threading.Timer(1.0, lambda: (batch / "cut.rc").write_text("124\n"))  # the earlier process ends
+    ended.start()
+    begun = time.monotonic()
+    started = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "3"], capture_output=True, text=True,
+                             timeout=60, env=env, cwd=tmp_path)
+    took = time.monotonic() - begun
+    ended.join()
+    assert started.returncode == 0, started.stderr
+    # the wait for the earlier process (polled every 2 s) ends at ~2 s, the report at ~3 s (not ~2 + 3)
+    assert 2.0 <= took < 4.7, took
+    assert (out / "report.txt").read_text() in started.stdout and "cut " in (out / "report.txt").read_text()
+    for name in ("report.txt", "results.tar.gz"):
+        (out / name).unlink()
+    waiting = subprocess.Popen(["bash", DEVICE_BATCH, "wait", "50"], stdout=subprocess.DEVNULL, env=env,
+                               cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 20
+        while not (out / "results.tar.gz").exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert waiting.poll() is None  # still waiting for the run (it sleeps 8 s), yet packed already
+        with tarfile.open(out / "results.tar.gz") as tar:
+            assert "./cut.log" in tar.getnames()
+        assert "=== " in (out / "report.txt").read_text()
+    finally:
+        waiting.kill()
+        waiting.wait()
+
+
 def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     """``ingest_batch.sh``: a device batch's results.tar.gz becomes study-runs/ folders, their effective-rank
     figures and every agent's row of the study's table (the job line's --agents dropped)."""

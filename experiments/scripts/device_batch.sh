@@ -3,7 +3,8 @@
 #
 #   device_batch.sh start JOBS SECONDS REPORT   launch every job of the file JOBS (each under `timeout -s TERM
 #                                               SECONDS`, in its own session so that it outlives the call), then
-#                                               report after REPORT seconds or when all have ended; refused
+#                                               report REPORT seconds after this start began (a relaunch's
+#                                               wait included) or when all have ended; refused
 #                                               while jobs of an earlier start still run (FORCE=1 overrides);
 #                                               a job of JOBS launched before (a run cut by its timeout, to be
 #                                               resumed) first waits for its earlier process to end
@@ -25,7 +26,10 @@
 # 300 more seconds), so a study line yields its table's cells (at the step reached) even when cut short.
 # Each report prints every run's progress line (and, for a job that has ended, its exit status and its wall seconds
 # from launch to exit, kept in runs/batch/NAME.seconds) and packs the run folders without checkpoints, the logs and
-# nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files).
+# nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files) and itself into
+# $OUT/report.txt. Both are also packed every SNAPSHOT_EVERY seconds (default 60) while the report waits: a call
+# stopped at its limit kills the command with its pipeline (a `| tail` returns nothing) but still returns what is
+# under $OUT. Keep REPORT some 30 s under the call's limit (the install before it takes ~10 s).
 # On a machine of several GPUs each job gets one GPU (CUDA_VISIBLE_DEVICES): "<name>@<k>" pins a line to GPU k
 # (k mod the machine's count, so a two-GPU file still runs on one GPU), the other lines are dealt out round robin
 # (the i-th line on GPU i mod count). "<name>@all" gives one job every GPU (e.g. `train --devices 4`, the seeds
@@ -104,9 +108,9 @@ still_running() {
     done
 }
 
-report_after() {
-    local end=$(($(date +%s) + $1))
-    while [ "$(date +%s)" -lt "$end" ] && pgrep -f "lnnmpc[.](train[.]cli train|experiments[.]run)" >/dev/null; do sleep 5; done
+# The report: every run's progress line (and, for a job that has ended, its exit status and wall seconds), the
+# tracebacks, nvidia-smi's view.
+print_report() {
     echo "=== $(date -u +%T) ($(($(date +%s) - $(cat $BATCH/started))) s since start)"
     for log in "$BATCH"/*.log; do
         printf '%-34s %s\n' "$(basename "$log" .log)" "$(tr '\r' '\n' <"$log" | grep '^\[' | tail -1 | cut -c1-110)"
@@ -119,9 +123,31 @@ report_after() {
         echo "--- $bad"; tail -15 "$bad"; done
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used,memory.total --format=csv,noheader 2>/dev/null \
         | tee "$BATCH/nvidia-smi.txt"
-    if [ -n "${OUT:-}" ]; then
-        tar czf "$OUT/results.tar.gz" --exclude=checkpoints --exclude=.lock -C "$BATCH" .
-    fi
+}
+
+# The report and the run folders (without checkpoints), the logs and nvidia-smi's view packed into $OUT (report.txt,
+# results.tar.gz; each replaced whole), where the device tool fetches them: also after a call cut at its limit.
+pack_out() {
+    [ -n "${OUT:-}" ] || return 0
+    print_report >"$OUT/.report.txt" 2>&1 && mv "$OUT/.report.txt" "$OUT/report.txt"
+    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock -C "$BATCH" . \
+        && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
+}
+
+# Wait until the epoch second DEADLINE or until no run is left, packing $OUT every SNAPSHOT_EVERY seconds (default
+# 60) on the way, so that a call stopped at its limit still returns the last pack; then report and pack.
+report_until() {  # DEADLINE
+    local packed
+    packed=$(date +%s)
+    while [ "$(date +%s)" -lt "$1" ] && pgrep -f "lnnmpc[.](train[.]cli train|experiments[.]run)" >/dev/null; do
+        sleep 1
+        if [ $(($(date +%s) - packed)) -ge "${SNAPSHOT_EVERY:-60}" ]; then
+            pack_out
+            packed=$(date +%s)
+        fi
+    done
+    print_report
+    pack_out
 }
 
 case $action in
@@ -129,6 +155,7 @@ start)
     jobs=${1:?JOBS file}
     seconds=${2:?SECONDS}
     report=${3:?REPORT}
+    deadline=$(($(date +%s) + report))  # counted from here: a relaunch's wait for its earlier process included
     mkdir -p "$BATCH" runs/jaxcache
     date +%s >"$BATCH/started"
     count=$(job_lines "$jobs" | wc -l)
@@ -196,12 +223,12 @@ start)
         CUDA_VISIBLE_DEVICES=$visible setsid nohup bash -c "$command" >>"$BATCH/$name.log" 2>&1 </dev/null &
         echo "$name (GPU $gpu): $args" | tee -a "$BATCH/commands.txt"
     done
-    report_after "$report"
+    report_until "$deadline"
     ;;
 wait)
     [ -f "$BATCH/started" ] || { echo "no batch on this machine ($BATCH/started is missing): the machine that ran"\
         "'start' went back (idle release) and this is a fresh one; its runs and checkpoints are gone" >&2; exit 1; }
-    report_after "${1:?REPORT}"
+    report_until $(($(date +%s) + ${1:?REPORT}))
     ;;
 after)
     name=${1:?NAME of a job of the running batch}
