@@ -3,8 +3,8 @@
 # copied into DIR (default runs/whl-train, git-ignored) without pyopengl (training never imports OpenGL), with
 # mujoco-mjx's test models (mujoco/mjx/test_data, ~6.5 MB compressed) dropped from its wheel and MuJoCo Studio's
 # GUI (mujoco/experimental, ~15.7 MB: neither mujoco, mjx, dm_control nor lnnmpc imports it; checked on the CPU
-# with the import blocked; walker runs installed and trained from it on an H200) from mujoco's, since the device tool refuses a working tree over 64 MiB and the
-# tracked files plus the whole wheels passed it.
+# with the import blocked; walker runs installed and trained from it on an H200) from mujoco's, since the device
+# tool refuses a working tree over 64 MiB and the tracked files plus the whole wheels passed it.
 #
 #   experiments/scripts/train_wheels.sh [DIR]
 #
