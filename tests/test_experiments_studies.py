@@ -366,6 +366,18 @@ def test_device_batch_start_refuses_while_an_earlier_starts_jobs_run(tmp_path):
     assert names == ["first", "done", "second", "third"]
 
 
+def _launched_before(tmp_path):
+    """A batch whose earlier start launched the job "cut" (its command and the first launch's log, no exit status
+    yet) and a jobs file that starts it again: (the batch folder, the jobs file)."""
+    batch = tmp_path / "runs" / "batch"
+    batch.mkdir(parents=True)
+    (batch / "commands.txt").write_text("cut (GPU 0): --task cartpole-balance\n")
+    (batch / "cut.log").write_text("first launch\n")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("cut  --task cartpole-balance\n")
+    return batch, jobs
+
+
 def test_device_batch_relaunch_waits_for_the_earlier_process_of_its_job(tmp_path):
     """Starting a job again (a run cut by its timeout, resumed from its checkpoint) waits for its earlier launch
     to end, at most RELAUNCH_WAIT seconds, then refuses naming it (other running jobs need no FORCE for that);
@@ -374,12 +386,7 @@ def test_device_batch_relaunch_waits_for_the_earlier_process_of_its_job(tmp_path
     import time
 
     env = _fake_gpu_machine(tmp_path, 1, "echo launched; exit 0")
-    batch = tmp_path / "runs" / "batch"
-    batch.mkdir(parents=True)
-    (batch / "commands.txt").write_text("cut (GPU 0): --task cartpole-balance\n")
-    (batch / "cut.log").write_text("first launch\n")
-    jobs = tmp_path / "jobs.txt"
-    jobs.write_text("cut  --task cartpole-balance\n")
+    batch, jobs = _launched_before(tmp_path)
     start = lambda: subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "20"], capture_output=True,
                                    text=True, timeout=60, env={**env, "RELAUNCH_WAIT": "0"}, cwd=tmp_path)
     refused = start()  # no cut.rc: the earlier process still runs
@@ -412,12 +419,7 @@ def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp
     out.mkdir()
     env = _fake_gpu_machine(tmp_path, 1, "echo launched; sleep 8", OUT=str(out), SNAPSHOT_EVERY="1",
                             RELAUNCH_WAIT="30")
-    batch = tmp_path / "runs" / "batch"
-    batch.mkdir(parents=True)
-    (batch / "commands.txt").write_text("cut (GPU 0): --task cartpole-balance\n")
-    (batch / "cut.log").write_text("first launch\n")
-    jobs = tmp_path / "jobs.txt"
-    jobs.write_text("cut  --task cartpole-balance\n")
+    batch, jobs = _launched_before(tmp_path)
     ended = threading.Timer(1.0, lambda: (batch / "cut.rc").write_text("124\n"))  # the earlier process ends
     ended.start()
     begun = time.monotonic()

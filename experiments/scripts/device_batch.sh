@@ -135,7 +135,8 @@ pack_out() {
 }
 
 # Wait until the epoch second DEADLINE or until no run is left, packing $OUT every SNAPSHOT_EVERY seconds (default
-# 60) on the way, so that a call stopped at its limit still returns the last pack; then report and pack.
+# 60) on the way, so that a call stopped at its limit still returns the last pack; then pack and print the report
+# (made once: the packed report.txt, or the report itself without OUT).
 report_until() {  # DEADLINE
     local packed
     packed=$(date +%s)
@@ -146,8 +147,12 @@ report_until() {  # DEADLINE
             packed=$(date +%s)
         fi
     done
-    print_report
-    pack_out
+    if [ -n "${OUT:-}" ]; then
+        pack_out
+        cat "$OUT/report.txt"
+    else
+        print_report
+    fi
 }
 
 case $action in
