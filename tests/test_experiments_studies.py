@@ -448,6 +448,34 @@ def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp
         waiting.wait()
 
 
+def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
+    """The runs' policy.npz files travel in $OUT/policies.tar, not in results.tar.gz, oldest run first while they
+    keep under POLICY_MIB; a file that would pass it is left out and named in the report, later ones still fit."""
+    import subprocess
+    import tarfile
+
+    out = tmp_path / "out"
+    out.mkdir()
+    body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; --size) size=$2;; esac; shift; done; '
+            'mkdir -p "$run/checkpoints"; echo rows >"$run/eval.csv"; head -c "$size" /dev/zero >"$run/policy.npz"; '
+            'head -c 10 /dev/zero >"$run/checkpoints/policy.npz"')
+    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("a --size 400000\nb --size 800000\nc --size 400000\n")  # a fits, a + b do not, a + c do
+    result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
+                            text=True, timeout=60, env=env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    with tarfile.open(out / "policies.tar") as tar:
+        assert sorted(tar.getnames()) == ["./a/policy.npz", "./c/policy.npz"]
+        assert tar.getmember("./a/policy.npz").size == 400_000
+    with tarfile.open(out / "results.tar.gz") as tar:
+        names = tar.getnames()
+    assert "./a/eval.csv" in names and not [n for n in names if "policy" in n or "checkpoints" in n]
+    report = (out / "report.txt").read_text()
+    assert "policy left out of policies.tar (over POLICY_MIB=1): ./b/policy.npz" in report
+    assert report.count("left out") == 1
+
+
 def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     """``ingest_batch.sh``: a device batch's results.tar.gz becomes study-runs/ folders, their effective-rank
     figures and every agent's row of the study's table (the job line's --agents dropped)."""

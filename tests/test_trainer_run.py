@@ -90,7 +90,10 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     import json
 
     files = {p.name for p in reference.iterdir()}
-    assert {"config.json", "train.csv", "eval.csv", "curve.png", "summary.md", "checkpoints"} <= files
+    assert {"config.json", "train.csv", "eval.csv", "curve.png", "summary.md", "checkpoints", "policy.npz"} <= files
+    from lnnmpc.train.policy_file import policy_step
+
+    assert policy_step(str(reference)) == CHECKPOINTS[-1]  # rewritten with each checkpoint: the newest's
     config = json.loads((reference / "config.json").read_text())
     assert config["config"]["seeds"] == 2 and config["config"]["replay_capacity"] == 3000
     assert config["num_devices"] == 1
@@ -273,6 +276,23 @@ def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
     assert os.path.basename(result.path) == "mjx-clean-1450.csv" and len(_rows(result.path)) == 8
     with pytest.raises(lnnmpc.ConfigError, match="checkpoint 500 is not in .*; available: 1000, 1450, 1902, 2804"):
         lnnmpc.evaluate(str(reference), checkpoint=500)
+
+
+def test_run_folder_without_checkpoints_evaluates_from_its_policy_file(reference, tmp_path, monkeypatch, cache):
+    """A run folder brought back from a GPU has no checkpoints (they hold the replay buffer): ``evaluate`` takes
+    its ``policy.npz`` and returns exactly what the newest checkpoint gives."""
+    import lnnmpc
+
+    monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
+    back = tmp_path / "back"
+    shutil.copytree(reference, back, ignore=shutil.ignore_patterns("checkpoints", "evals", "videos"))
+    from_policy = lnnmpc.evaluate(str(back), episodes=4, seed=3, verbose=False)
+    from_checkpoint = lnnmpc.evaluate(str(reference), episodes=4, seed=3, verbose=False, out=str(tmp_path / "c.csv"))
+    assert from_policy.checkpoint == from_checkpoint.checkpoint == CHECKPOINTS[-1]
+    np.testing.assert_array_equal(from_policy.returns, from_checkpoint.returns)
+    assert from_policy.returns.std() > 0  # episodes differ: a real evaluation, not a constant
+    with pytest.raises(lnnmpc.ConfigError, match=f"checkpoint 1450 is not in .*; available: {CHECKPOINTS[-1]}"):
+        lnnmpc.evaluate(str(back), checkpoint=1450)
 
 
 def test_trained_agent_beats_its_untrained_self(reference, cache):

@@ -26,10 +26,11 @@
 # 300 more seconds), so a study line yields its table's cells (at the step reached) even when cut short.
 # Each report prints every run's progress line (and, for a job that has ended, its exit status and its wall seconds
 # from launch to exit, kept in runs/batch/NAME.seconds) and packs the run folders without checkpoints, the logs and
-# nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files) and itself into
-# $OUT/report.txt. Both are also packed every SNAPSHOT_EVERY seconds (default 60) while the report waits: a call
-# stopped at its limit kills the command with its pipeline (a `| tail` returns nothing) but still returns what is
-# under $OUT. Keep REPORT some 30 s under the call's limit (the install before it takes ~10 s).
+# nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files), the runs' policy.npz files
+# (their parameters, for `eval` and `video` back here) into $OUT/policies.tar and itself into $OUT/report.txt.
+# All are also packed every SNAPSHOT_EVERY seconds (default 60) while the report waits: a call stopped at its
+# limit kills the command with its pipeline (a `| tail` returns nothing) but still returns what is under $OUT.
+# Keep REPORT some 30 s under the call's limit (the install before it takes ~10 s).
 # On a machine of several GPUs each job gets one GPU (CUDA_VISIBLE_DEVICES): "<name>@<k>" pins a line to GPU k
 # (k mod the machine's count, so a two-GPU file still runs on one GPU), the other lines are dealt out round robin
 # (the i-th line on GPU i mod count). "<name>@all" gives one job every GPU (e.g. `train --devices 4`, the seeds
@@ -119,6 +120,7 @@ print_report() {
         [ -f "$ended.seconds" ] && echo "ended (exit $(cat "$ended.rc" 2>/dev/null)) $(cat "$ended.seconds") s after its launch"
         [ -f "$ended.earlier-seconds" ] && echo "earlier launches: $(paste -sd+ "$ended.earlier-seconds") s"
     done
+    cat "$BATCH/policies.txt" 2>/dev/null
     grep -l -E "Traceback|Error" "$BATCH"/*.log 2>/dev/null | while read -r bad; do
         echo "--- $bad"; tail -15 "$bad"; done
     nvidia-smi --query-gpu=index,utilization.gpu,memory.used,memory.total --format=csv,noheader 2>/dev/null \
@@ -127,11 +129,31 @@ print_report() {
 
 # The report and the run folders (without checkpoints), the logs and nvidia-smi's view packed into $OUT (report.txt,
 # results.tar.gz; each replaced whole), where the device tool fetches them: also after a call cut at its limit.
+# The runs' policy.npz files (the newest checkpoint's parameters, some MB per seed) go apart into policies.tar,
+# which keeps under POLICY_MIB (default 15: the tool returns files of at most 16 MiB); the report names any left out.
 pack_out() {
     [ -n "${OUT:-}" ] || return 0
+    pack_policies >"$BATCH/policies.txt"
     print_report >"$OUT/.report.txt" 2>&1 && mv "$OUT/.report.txt" "$OUT/report.txt"
-    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock -C "$BATCH" . \
+    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock --exclude=policy.npz -C "$BATCH" . \
         && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
+}
+
+# $OUT/policies.tar: every run's policy.npz under $BATCH, oldest run first, as many as keep under POLICY_MIB; prints
+# one line per file left out
+pack_policies() {
+    local budget=$((${POLICY_MIB:-15} * 1048576)) used=0 size file packed=()
+    while read -r file; do
+        size=$(stat -c %s "$BATCH/$file")
+        if [ $((used + size)) -le "$budget" ]; then
+            packed+=("$file")
+            used=$((used + size))
+        else
+            echo "policy left out of policies.tar (over POLICY_MIB=${POLICY_MIB:-15}): $file"
+        fi
+    done < <(cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' | sort)
+    [ ${#packed[@]} -gt 0 ] || return 0
+    tar cf "$OUT/.policies.tar" -C "$BATCH" "${packed[@]}" && mv "$OUT/.policies.tar" "$OUT/policies.tar"
 }
 
 # Wait until the epoch second DEADLINE or until no run is left, packing $OUT every SNAPSHOT_EVERY seconds (default

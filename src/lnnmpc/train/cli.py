@@ -67,12 +67,14 @@ def _train_parser(sub) -> None:
 
 
 def _eval_parser(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a run's checkpoint under any corruption, on MJX or dm_control")
+    p = sub.add_parser("eval", help="evaluate a run's checkpoint (or policy.npz) under any corruption, on MJX or "
+                                              "dm_control")
     p.add_argument("run", help="run folder")
     p.add_argument("--obs", default=None, help="corruptions (default: the run's evaluation corruptions)")
     p.add_argument("--episodes", type=int, default=10, help="episodes per seed")
     p.add_argument("--backend", default="mjx", help="mjx or dm_control (the original simulator, CPU)")
-    p.add_argument("--checkpoint", type=int, default=None, help="environment step of a checkpoint (default latest)")
+    p.add_argument("--checkpoint", type=int, default=None,
+                   help="environment step of a checkpoint or of policy.npz (default the newest)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="CSV path (default <run>/evals/<backend>-<obs>-<step>.csv)")
 

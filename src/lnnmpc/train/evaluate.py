@@ -9,7 +9,9 @@ Each seed's policy plays ``episodes`` deterministic episodes (the training evalu
 exploration noise, each episode with its own seed). ``backend="mjx"`` runs them in parallel in one compiled
 program on the default JAX device with the physics profile the run trained on; ``backend="dm_control"`` runs the
 same agent on the original dm_control simulator on the CPU (:mod:`lnnmpc.train.dm_backend`). The CSV has one
-row per (seed, episode) with the checkpoint's environment step, backend and corruption options.
+row per (seed, episode) with the checkpoint's environment step, backend and corruption options. A run folder
+without its checkpoints (one brought back from a GPU) is evaluated from its ``policy.npz``
+(:mod:`lnnmpc.train.policy_file`), the newest checkpoint's parameters.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
 from lnnmpc.train.compat import check_layout, state_signature
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.policy_file import POLICY_FILE, policy_step, restore_policy
 from lnnmpc.train.setup import build_loop, enable_compile_cache
 from lnnmpc.train.sharding import SeedPlacement
 
@@ -70,9 +73,13 @@ def check_observation_size(env, policy: Policy) -> None:
 
 
 def choose_checkpoint(run: str, checkpoint: int | None) -> int:
+    """A step of ``run`` with a complete checkpoint or its ``policy.npz`` (the newest by default)."""
     steps = all_steps(run)
+    exported = policy_step(run)
+    if exported is not None and exported not in steps:
+        steps = sorted([*steps, exported])
     if not steps:
-        raise ConfigError(f"{run!r} has no complete checkpoint")
+        raise ConfigError(f"{run!r} has no complete checkpoint and no {POLICY_FILE}")
     if checkpoint is None:
         return steps[-1]
     if checkpoint not in steps:
@@ -81,7 +88,7 @@ def choose_checkpoint(run: str, checkpoint: int | None) -> int:
 
 
 def load_policy(run: str, checkpoint: int | None = None) -> Policy:
-    """Restores the agent state of all seeds from a checkpoint (the latest by default)."""
+    """Restores the agent state of all seeds from a checkpoint or ``policy.npz`` (the newest by default)."""
     config = runfolder.saved_config(run)
     step = choose_checkpoint(run, checkpoint)
     loop = build_loop(config)
@@ -96,8 +103,13 @@ def policy_at(policy: Policy, run: str, checkpoint: int) -> Policy:
 
 
 def _restored(policy: Policy, run: str) -> Policy:
-    """``policy`` with the agent state of its (existing) ``checkpoint`` step of ``run``."""
-    like = jax.eval_shape(jax.vmap(policy.loop.init), jax.random.split(jax.random.key(0), policy.config.seeds))
+    """``policy`` with the agent state of its (existing) ``checkpoint`` step of ``run``: from the checkpoint, or
+    where the run has none at that step (a run folder back from a GPU) from its ``policy.npz``."""
+    keys = jax.random.split(jax.random.key(0), policy.config.seeds)
+    if policy.checkpoint not in all_steps(run):
+        agent_state = restore_policy(run, jax.jit(jax.vmap(policy.loop.agent.init))(keys))
+        return dataclasses.replace(policy, agent_state=agent_state)
+    like = jax.eval_shape(jax.vmap(policy.loop.init), keys)
     state, _ = restore_checkpoint(run, policy.checkpoint, like)
     return dataclasses.replace(policy, agent_state=state.agent)
 

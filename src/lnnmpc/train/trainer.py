@@ -45,6 +45,7 @@ from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkp
 from lnnmpc.train.compat import agent_config_json
 from lnnmpc.train.config import TrainConfig
 from lnnmpc.train.guard import StopRequest, all_finite, first_non_finite
+from lnnmpc.train.policy_file import save_policy
 from lnnmpc.train.provenance import process_seconds, provenance_entry
 from lnnmpc.train.setup import Setup, enable_compile_cache, validate
 from lnnmpc.train.sharding import AheadOfTime, SeedPlacement, compile_ahead
@@ -301,6 +302,7 @@ class _Run:
         n = self.counters
         n["last_checkpoint"] = n["env_steps"]
         save_checkpoint(self.run, n["env_steps"], self.ts, dict(n), keep=self.config.keep_checkpoints)
+        save_policy(self.run, n["env_steps"], self.ts.agent)  # the parameters alone, for runs back from a GPU
 
 
 def _key_list(key: jax.Array) -> list[int]:
