@@ -79,7 +79,7 @@ def test_benchmark_loop_takes_the_batch_size_and_update_kernels_refuses_a_bad_on
     assert loop.config.batch_size == 8
     ts = jax.eval_shape(loop.init, jax.random.key(0))
     sample = lambda replay, key: replay_sample(replay, key, loop.config.batch_size, loop.agent.sequence_length)
-    records, _ = jax.eval_shape(sample, ts.replay, jax.random.key(1))
+    records, _, _ = jax.eval_shape(sample, ts.replay, jax.random.key(1))
     assert {leaf.shape[1] for leaf in jax.tree_util.tree_leaves(records)} == {8}  # (sequence, B, ...)
     monkeypatch.setattr(sys, "argv", ["update_kernels.py", "--loop-seeds", "1", "--batch-size", "0"])
     with pytest.raises(SystemExit):

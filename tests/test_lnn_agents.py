@@ -491,3 +491,35 @@ def test_scan_unroll_changes_speed_only(name):
             np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-4, atol=1e-6)
     with pytest.raises(ValueError, match="scan_unroll=0 is invalid; expected an integer >= 1"):
         tiny(name, scan_unroll=0)
+
+
+def test_learn_episode_starts_restarts_the_burn_in_at_the_episode_start():
+    """With ``learn_episode_starts`` a window may begin up to T records before its episode (``sequence_lead``):
+    the encoder restarts from the stored state at the ``first`` record, so the latents equal a fresh unroll from
+    that record and nothing before it matters; without the option the same records do change them."""
+    agent = tiny("cfc-zp-det", learn_episode_starts=True)
+    plain = tiny("cfc-zp-det")
+    T, N = agent.config.burn_in, agent.config.model.hidden_size
+    assert (agent.sequence_lead, plain.sequence_lead, agent.sequence_length) == (T, 0, plain.sequence_length)
+    assert "learn_episode_starts" in tiny("cfc-zp-det", burn_in=0).config.inactive_fields()
+    state = quick_jit(agent.init)(jax.random.key(2))
+    starts = np.arange(B) % (T + 1)  # sample b's episode starts at position starts[b], 0..T
+    batch = window(agent, seed=4)
+    first = jnp.asarray(np.arange(agent.sequence_length)[:, None] == starts[None, :])
+    at_start = first[..., None]
+    batch = {**batch, "first": first, "h_prev": jnp.where(at_start, 0.0, batch["h_prev"]),  # the stored reset
+             "prev_action": jnp.where(at_start, 0.0, batch["prev_action"])}
+    before = jnp.asarray(np.arange(agent.sequence_length)[:, None] < starts[None, :])[..., None]
+    junk = {**batch, "obs": jnp.where(before, batch["obs"] + 3.0, batch["obs"]),  # the previous episode's end
+            "h_prev": batch["h_prev"].at[0].add(jnp.where(starts[:, None] > 0, 0.7, 0.0))}
+    latents = quick_jit(agent.latents)
+    z = np.asarray(latents(state.params, batch))
+    np.testing.assert_array_equal(z, np.asarray(latents(state.params, junk)))
+    for b in range(B):  # a fresh unroll from zeros at the episode's first record
+        p = int(starts[b])
+        one = {k: v[p:, b:b + 1] for k, v in batch.items() if k != "first"}
+        states = agent.encode_sequence(state.params, jnp.zeros((1, N)), one["obs"], one["prev_action"], one["dt"])
+        np.testing.assert_allclose(z[:, b], np.asarray(states[T - p:, 0]), rtol=1e-5, atol=1e-6)
+    plain_latents = quick_jit(plain.latents)
+    assert not np.allclose(np.asarray(plain_latents(state.params, batch)),
+                           np.asarray(plain_latents(state.params, junk)))

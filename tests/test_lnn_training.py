@@ -66,6 +66,24 @@ def test_closed_loop_training_stays_finite(run):
     assert np.isfinite(np.asarray(ts.carry.h)).all() and float(np.abs(np.asarray(ts.carry.h)).max()) > 0
 
 
+def test_the_loop_samples_windows_with_the_agents_lead(run, monkeypatch):
+    """An agent with ``learn_episode_starts`` gets windows whose burn-in may reach back past their episode's start
+    (``replay_sample``'s ``lead`` = its burn-in) and the records' ``first`` flags in its batch."""
+    import lnnmpc.train.loop as loop_module
+
+    loop, _, ts, _ = run
+    calls = []
+    real = loop_module.replay_sample
+    monkeypatch.setattr(loop_module, "replay_sample", lambda *a: calls.append(a[3:]) or real(*a))
+    agent = tiny_agent("cfc-zp-det", loop.env.observation_size, loop.env.action_size, learn_episode_starts=True)
+    batches = []
+    monkeypatch.setattr(agent, "update", lambda state, batch, key: batches.append(batch) or (state, {}))
+    jax.eval_shape(TrainingLoop(agent, loop.env, loop.env, loop.config)._update, ts, jax.random.key(0))
+    jax.eval_shape(loop._update, ts, jax.random.key(0))
+    assert calls == [(agent.sequence_length, agent.config.burn_in), (agent.sequence_length, 0)]
+    assert batches[0]["first"].shape == (agent.sequence_length, B) and batches[0]["first"].dtype == bool
+
+
 # Every variant, and cfc-zp-det with its latent read off the state and the observation by a SimNorm head (12 wide,
 # groups of 4, on the tiny encoder state of 8; without the skip in test_lnn_agents.py).
 VARIANTS = [(name, {}) for name in LNN_AGENTS] + [

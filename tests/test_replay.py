@@ -70,14 +70,15 @@ def filled(capacity, num_envs, n, max_ep=None, seed=0):
     return add_all(replay_init(example_record(), capacity, num_envs), recs, first), recs
 
 
-def reference_windows(first, n, capacity, length):
-    """Set of valid (start time, env) by brute force over the stream's last min(n, capacity) records."""
+def reference_windows(first, n, capacity, length, lead=0):
+    """Set of valid (start time, env) by brute force over the stream's last min(n, capacity) records: no episode
+    start after position ``lead``."""
     lo = max(0, n - capacity)
     return {
         (s, e)
         for e in range(first.shape[1])
         for s in range(lo, n - length + 1)
-        if not first[s + 1 : s + length, e].any()
+        if not first[s + 1 + lead : s + length, e].any()
     }
 
 
@@ -104,7 +105,7 @@ def test_windows_never_cross_episodes_or_write_position(n):
     ref = reference_windows(recs["first"], n, capacity, length)
     assert int(replay_size(state)) == min(n, capacity)
     assert int(replay_num_windows(state, length)) == len(ref)
-    records, valid = sample(state, jax.random.key(n), 512, length)
+    records, _, valid = sample(state, jax.random.key(n), 512, length)
     got = check_windows(records, valid, recs, n, capacity, length)
     assert got <= ref
 
@@ -113,26 +114,26 @@ def test_wrap_without_episode_ends_uses_whole_ring():
     capacity, num_envs, length, n = 32, 2, 6, 3 * 32 + 7
     state, recs = filled(capacity, num_envs, n)
     assert int(replay_num_windows(state, length)) == num_envs * (capacity - length + 1)
-    records, valid = sample(state, jax.random.key(1), 4000, length)
+    records, _, valid = sample(state, jax.random.key(1), 4000, length)
     got = check_windows(records, valid, recs, n, capacity, length)
     starts = {s for s, _ in got}
     assert min(starts) == n - capacity and max(starts) == n - length  # oldest and newest windows both reachable
     # same check with length == capacity: exactly one window per stream, the whole ring in time order
-    records, _ = sample(state, jax.random.key(2), 8, capacity)
+    records, _, _ = sample(state, jax.random.key(2), 8, capacity)
     np.testing.assert_array_equal(np.asarray(records["t"])[:, 0], np.arange(n - capacity, n))
 
 
 def test_partially_full_and_empty():
     state = replay_init(example_record(), 50, 2)
-    records, valid = sample(state, jax.random.key(0), 4, 1)
+    records, _, valid = sample(state, jax.random.key(0), 4, 1)
     assert not np.asarray(valid).any() and int(replay_num_windows(state, 1)) == 0
     state, recs = filled(50, 2, 7, max_ep=3, seed=3)
     assert int(replay_size(state)) == 7
-    records, valid = sample(state, jax.random.key(0), 256, 2)
+    records, _, valid = sample(state, jax.random.key(0), 256, 2)
     check_windows(records, valid, recs, 7, 50, 2)
     # more than the episodes allow: no valid window of length 4 when episodes have <= 3 records
     assert int(replay_num_windows(state, 4)) == 0
-    assert not np.asarray(sample(state, jax.random.key(0), 3, 4)[1]).any()
+    assert not np.asarray(sample(state, jax.random.key(0), 3, 4)[2]).any()
 
 
 def test_sampling_is_uniform_over_valid_windows():
@@ -141,7 +142,7 @@ def test_sampling_is_uniform_over_valid_windows():
     ref = sorted(reference_windows(recs["first"], n, capacity, length))
     assert int(replay_num_windows(state, length)) == len(ref) > 10
     draws = 40_000
-    records, valid = sample(state, jax.random.key(5), draws, length)
+    records, _, valid = sample(state, jax.random.key(5), draws, length)
     check_windows(records, valid, recs, n, capacity, length)
     keys = list(zip(np.asarray(records["t"][0]).tolist(), np.asarray(records["env"][0]).tolist(), strict=True))
     index = {w: i for i, w in enumerate(ref)}
@@ -163,7 +164,7 @@ def test_jit_vmap_over_seeds_independent_buffers():
     state = jax.jit(jax.vmap(add_all))(init, recs, first)
     counts = jax.jit(jax.vmap(partial(replay_num_windows, length=length)))(state)
     keys = jax.random.split(jax.random.key(0), seeds)
-    records, valid = jax.jit(jax.vmap(partial(replay_sample, batch_size=300, length=length)))(state, keys)
+    records, _, valid = jax.jit(jax.vmap(partial(replay_sample, batch_size=300, length=length)))(state, keys)
     for s, (rec_s, first_s) in enumerate(streams):
         ref = reference_windows(first_s, n, capacity, length)
         assert int(counts[s]) == len(ref)
@@ -173,10 +174,33 @@ def test_jit_vmap_over_seeds_independent_buffers():
     assert not np.array_equal(np.asarray(records["t"][0]), np.asarray(records["t"][1]))
 
 
+@pytest.mark.parametrize("n", [40, 203])
+def test_lead_lets_a_window_reach_back_past_its_episode_start(n):
+    """``lead=L``: the last ``length - L`` records of a window lie in one episode, the first ``L`` may belong to
+    the episode before; the sampled ``first`` flags are the records' own, set only at positions ``0 .. L``. Every
+    window that a brute-force scan allows is drawn (and no other), so episodes' first records become reachable
+    at every position past the lead."""
+    capacity, num_envs, length, lead = 64, 3, 7, 3
+    state, recs = filled(capacity, num_envs, n, max_ep=12, seed=n + 1)
+    ref = reference_windows(recs["first"], n, capacity, length, lead)
+    assert int(replay_num_windows(state, length, lead)) == len(ref) > len(reference_windows(recs["first"], n,
+                                                                                          capacity, length))
+    records, first, valid = jax.jit(replay_sample, static_argnums=(2, 3, 4))(state, jax.random.key(n), 20_000,
+                                                                              length, lead)
+    r = jax.tree_util.tree_map(np.asarray, records)
+    first = np.asarray(first)
+    assert np.asarray(valid).all() and r["written"].all() and (np.diff(r["t"], axis=0) == 1).all()
+    np.testing.assert_array_equal(first, r["first"])  # the flags of the records drawn
+    assert not first[lead + 1:].any() and first[1:lead + 1].any()  # starts inside the lead, and only there
+    assert (r["ep"][lead:] == r["ep"][-1:]).all()  # the part after the lead is one episode
+    got = set(zip(r["t"][0].tolist(), r["env"][0].tolist(), strict=True))
+    assert got == ref
+
+
 def test_extra_fields_round_trip_exactly():
     capacity, num_envs, length, n = 16, 3, 4, 40
     state, recs = filled(capacity, num_envs, n, max_ep=9, seed=7)
-    records, valid = sample(state, jax.random.key(3), 200, length)
+    records, _, valid = sample(state, jax.random.key(3), 200, length)
     check_windows(records, valid, recs, n, capacity, length)
     t, env = np.asarray(records["t"]), np.asarray(records["env"])
     for name in ("obs", "reward", "ep", "first"):
@@ -195,6 +219,8 @@ def test_bad_arguments_raise_value_error():
         replay_num_windows(state, 0)
     with pytest.raises(ValueError, match="batch_size must be a positive int, got 0"):
         replay_sample(state, key, 0, 2)
+    with pytest.raises(ValueError, match=r"lead must be an int in \[0, length - 1\] = \[0, 2\], got 3"):
+        replay_sample(state, key, 4, 3, lead=3)
     with pytest.raises(ValueError, match="capacity must be a positive int, got 0"):
         replay_init(example_record(), 0, 1)
     with pytest.raises(ValueError, match="num_envs must be a positive int, got 1.5"):

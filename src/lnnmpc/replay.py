@@ -13,10 +13,13 @@ Record semantics (shapes per record, the buffer adds ``(capacity, num_envs)`` in
 
 A window of ``length`` records ``t .. t+length-1`` of one stream is *valid* iff all its records are in the
 buffer (written and not yet overwritten, so it never straddles the write position: the oldest record is never
-read after the newest) and no record at window positions ``1 .. length-1`` has ``first`` set. Only position 0
-may start an episode, so an episode's final observation can only be the last record of a window; for a
-horizon ``H`` model-learning window (``H + 1`` observations, ``H`` actions and rewards) use ``length = H + 1``
-and ignore the last record's action and reward; with burn-in ``T`` use ``length = T + H + 1``.
+read after the newest) and no record at window positions ``lead+1 .. length-1`` has ``first`` set. With
+``lead = 0`` (the default) only position 0 may start an episode, so an episode's final observation can only be
+the last record of a window; for a horizon ``H`` model-learning window (``H + 1`` observations, ``H`` actions
+and rewards) use ``length = H + 1`` and ignore the last record's action and reward; with burn-in ``T`` use
+``length = T + H + 1``, and ``lead = T`` lets the burn-in reach back past the episode's start (the sampled
+``first`` flags say where the agent restarts its state), so that the first ``T`` records of every episode are
+learning steps too.
 
 Sampling is exact and uniform over all valid windows: per call it builds the mask of valid window *ends*
 (one comparison per slot, thanks to ``ep_step``, the number of earlier records of the same episode that the
@@ -165,28 +168,38 @@ def _check_length(state: ReplayState, length: Any) -> int:
     return length
 
 
-def _valid_ends(state: ReplayState, length: int) -> jax.Array:
-    """``(capacity, num_envs)`` bool: a valid window of ``length`` records ends at this slot.
+def _check_lead(lead: Any, length: int) -> int:
+    if isinstance(lead, bool) or not isinstance(lead, int) or not 0 <= lead < length:
+        raise ValueError(f"lead must be an int in [0, length - 1] = [0, {length - 1}], got {lead!r}")
+    return lead
+
+
+def _valid_ends(state: ReplayState, length: int, lead: int = 0) -> jax.Array:
+    """``(capacity, num_envs)`` bool: a valid window of ``length`` records (whose first ``lead`` may precede
+    its episode) ends at this slot.
 
     The slot's age rank ``j`` (0 = oldest written slot) must satisfy ``length-1 <= j < count`` (the whole
-    window is written and not overwritten), and ``ep_step >= length-1`` (no ``first`` inside the window:
-    ``ep_step`` counts back to the latest ``first``, which lies at or before the window start). Never-written
-    slots have ``ep_step = -1``, so ``rank < count`` is implied; it stays as a guard for hand-built states.
+    window is written and not overwritten), and ``ep_step >= length-1-lead`` (no ``first`` after position
+    ``lead``: ``ep_step`` counts back to the latest ``first``, which lies at or before position ``lead``).
+    Never-written slots have ``ep_step = -1``, so ``rank < count`` is implied; it stays as a guard for
+    hand-built states.
     """
     cap = state.capacity
     oldest = (state.pos - state.count) % cap
     rank = (jnp.arange(cap, dtype=jnp.int32) - oldest) % cap
     in_buffer = (rank >= length - 1) & (rank < state.count)
-    return in_buffer[:, None] & (state.ep_step >= length - 1)
+    return in_buffer[:, None] & (state.ep_step >= length - 1 - lead)
 
 
-def replay_num_windows(state: ReplayState, length: int) -> jax.Array:
-    """Number of valid windows of ``length`` records over all streams, ``()`` int32."""
+def replay_num_windows(state: ReplayState, length: int, lead: int = 0) -> jax.Array:
+    """Number of valid windows of ``length`` records (``lead``: as :func:`replay_sample`) over all streams,
+    ``()`` int32."""
     length = _check_length(state, length)
-    return jnp.sum(_valid_ends(state, length), dtype=jnp.int32)
+    return jnp.sum(_valid_ends(state, length, _check_lead(lead, length)), dtype=jnp.int32)
 
 
-def replay_sample(state: ReplayState, key: jax.Array, batch_size: int, length: int) -> tuple[PyTree, jax.Array]:
+def replay_sample(state: ReplayState, key: jax.Array, batch_size: int, length: int,
+                  lead: int = 0) -> tuple[PyTree, jax.Array, jax.Array]:
     """Draw ``batch_size`` windows of ``length`` consecutive records, uniformly (with replacement) among all valid.
 
     Args:
@@ -194,19 +207,25 @@ def replay_sample(state: ReplayState, key: jax.Array, batch_size: int, length: i
         key: PRNG key.
         batch_size: windows per call (static int >= 1).
         length: records per window (static, ``1 <= length <= capacity``).
+        lead: (static, ``0 <= lead < length``) the first ``lead`` records of a window may belong to the episode
+            before the one its last ``length - lead`` records lie in (a burn-in that reaches back past the
+            episode's start, the agent restarting its state at the ``first`` record); 0: no window crosses an
+            episode start.
 
     Returns:
-        ``(records, valid)``: ``records`` is the fields pytree with leaves ``(length, batch_size, *shape)``
-        (time-major); ``valid`` is ``(batch_size,)`` bool, all True unless the buffer holds no valid window
-        (check :func:`replay_num_windows`), in which case the records are meaningless and all False: use it
-        as a loss weight to make updates on an empty buffer no-ops.
+        ``(records, first, valid)``: ``records`` is the fields pytree with leaves ``(length, batch_size,
+        *shape)`` (time-major); ``first`` is ``(length, batch_size)`` bool, the records that start an episode
+        (only at positions ``0 .. lead``); ``valid`` is ``(batch_size,)`` bool, all True unless the buffer holds
+        no valid window (check :func:`replay_num_windows`), in which case the records are meaningless and all
+        False: use it as a loss weight to make updates on an empty buffer no-ops.
     """
     batch_size = _check_positive_int("batch_size", batch_size)
     length = _check_length(state, length)
+    lead = _check_lead(lead, length)
     cap, n_env = state.capacity, state.num_envs
     if cap * n_env >= 2**31:
         raise ValueError(f"capacity*num_envs={cap * n_env} overflows the int32 window count")
-    cum = jnp.cumsum(_valid_ends(state, length).reshape(-1), dtype=jnp.int32)
+    cum = jnp.cumsum(_valid_ends(state, length, lead).reshape(-1), dtype=jnp.int32)
     total = cum[-1]
     rank = jax.random.randint(key, (batch_size,), 0, jnp.maximum(total, 1), dtype=jnp.int32)
     # The rank-th valid end (0-based) is the first flat slot whose inclusive count exceeds rank.
@@ -216,7 +235,7 @@ def replay_sample(state: ReplayState, key: jax.Array, batch_size: int, length: i
     slots = (end_slot[None, :] - (length - 1) + jnp.arange(length, dtype=jnp.int32)[:, None]) % cap
     records = jax.tree_util.tree_map(lambda buf: buf[slots, env[None, :]], state.fields)
     valid = jnp.broadcast_to(total > 0, (batch_size,))
-    return records, valid
+    return records, state.first[slots, env[None, :]], valid
 
 
 def replay_capacity_for(env_steps: int, action_repeat: int, num_envs: int, episode_decisions: int = 500) -> int:

@@ -96,6 +96,10 @@ class LNNConfig(TDMPC2Config):
     # Encoder time steps per lax.scan iteration in the update (speed only; >= T + H + 1 leaves no loop). No faster
     # on an H100 for walker (12.65 ms rolled, 12.87 fully unrolled: benchmarks/results/README.md, run 13).
     scan_unroll: int = 1
+    # Windows whose burn-in reaches back past their episode's start (the encoder restarting at its first record),
+    # so an episode's first T records are learning steps too; False (the thesis): windows never cross an episode,
+    # and those records are only ever burn-in.
+    learn_episode_starts: bool = False
 
     def __post_init__(self):
         super().__post_init__()
@@ -124,6 +128,8 @@ class LNNConfig(TDMPC2Config):
             unused.add("free_bits")
         if self.rollout_steps == 1:
             unused.add("rollout_stride")
+        if self.burn_in == 0:  # windows then start at their episode's start at the earliest
+            unused.add("learn_episode_starts")
         if self.model.latent_head == "none":
             unused |= {f"model.{name}" for name in ("simnorm_dim", *HEAD_ONLY_SETTINGS)}
         return unused
@@ -164,20 +170,28 @@ class LNNTDMPC2(TDMPC2):
 
     # -------------------------------------------------------------------------------------- encoder
     def encode_sequence(self, params, h0: jax.Array, obs: jax.Array, prev_action: jax.Array,
-                        dt: jax.Array) -> jax.Array:
-        """Encoder states (T, B, N) after each step, from h0 (B, N), obs (T, B, d), prev_action (T, B, A), dt (T, B)."""
+                        dt: jax.Array, resets: jax.Array | None = None) -> jax.Array:
+        """Encoder states (T, B, N) after each step, from h0 (B, N), obs (T, B, d), prev_action (T, B, A), dt (T, B);
+        ``resets`` (T, B) bool restarts a sample from zeros (the initial carry's state) before that step."""
         inputs = encoder_input(self.config.model, obs, prev_action)
-        return unroll(self.cell, {"params": params["encoder"]}, h0, inputs, dt,
+        return unroll(self.cell, {"params": params["encoder"]}, h0, inputs, dt, resets,
                       scan_unroll=self.config.scan_unroll).states
 
     def latents(self, params, batch: dict) -> jax.Array:
-        """z_0..z_H (H + 1, B, N) of a window: burn-in from the stored state under stop_gradient, then BPTT."""
+        """z_0..z_H (H + 1, B, N) of a window: burn-in from the stored state under stop_gradient, then BPTT.
+
+        With ``learn_episode_starts`` the window's records that start an episode (``batch["first"]`` (T + H + 1,
+        B) bool, from ``replay_sample``; only within positions 0..T) restart the encoder from their stored state
+        h_{−1} (the acting carry's reset, zeros), so the records before them change nothing."""
         T = self.config.burn_in
         h = batch["h_prev"][0]
+        first = batch["first"] if self.config.learn_episode_starts else None
         if T:
             with jax.named_scope("encoder_burn_in"):
                 h = self.encode_sequence(params, h, batch["obs"][:T], batch["prev_action"][:T],
-                                         batch["dt"][:T])[-1]
+                                         batch["dt"][:T], resets=None if first is None else first[:T])[-1]
+        if first is not None:  # an episode that starts at the window's first learning record
+            h = jnp.where(first[T][:, None], batch["h_prev"][T], h)
         h = jax.lax.stop_gradient(h)
         with jax.named_scope("encoder_window"):
             hs = self.encode_sequence(params, h, batch["obs"][T:], batch["prev_action"][T:], batch["dt"][T:])
@@ -279,6 +293,12 @@ class LNNTDMPC2(TDMPC2):
     def sequence_length(self) -> int:
         """Replay records per training window: burn-in T + H + 1."""
         return self.config.burn_in + self.config.horizon + 1
+
+    @property
+    def sequence_lead(self) -> int:
+        """Records at a window's start that may precede its episode: the burn-in T with ``learn_episode_starts``
+        (the encoder restarts at the episode's first record), else 0."""
+        return self.config.burn_in if self.config.learn_episode_starts else 0
 
     def initial_carry(self) -> LNNCarry:
         c = self.config

@@ -5,8 +5,11 @@ pure; the loop ``jit``s them, ``vmap``s them over seeds and the per-environment 
 
 * ``init(key) -> AgentState``: parameters, optimiser states, ... (any pytree).
 * ``update(state, batch, key) -> (state, metrics)``: one update on ``batch``, the agent's replay records as
-  time-major windows (leaves ``(sequence_length, B, ...)``) that never cross an episode.
+  time-major windows (leaves ``(sequence_length, B, ...)``) that never cross an episode after their first
+  ``sequence_lead`` records, plus ``batch["first"]`` ``(sequence_length, B)`` bool: the records that start one.
 * ``sequence_length``: records per training window (``tdmpc2``: H + 1; LNN agents: burn-in T + H + 1).
+* ``sequence_lead``: records at a window's start that may precede its episode (0; LNN agents with
+  ``learn_episode_starts``: the burn-in T).
 * ``initial_carry() -> carry``: the per-environment *acting carry* at an episode start (any pytree, no batch
   axis): ``tdmpc2`` the planner's warm-start mean; LNN agents also the encoder state h_{t-1} and a_{t-1}.
 * ``act(state, carry, obs, dt, key, *, explore, first_step) -> (action, carry)``: the action (A,) in [-1, 1]

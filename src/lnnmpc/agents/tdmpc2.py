@@ -240,6 +240,11 @@ class TDMPC2:
         """Replay records per training window: H + 1."""
         return self.config.horizon + 1
 
+    @property
+    def sequence_lead(self) -> int:
+        """Records at a window's start that may precede its episode (``replay_sample``'s ``lead``): none."""
+        return 0
+
     def initial_carry(self) -> jax.Array:
         """Acting carry of one environment at an episode start: the planner's warm start (plan horizon, A)."""
         return jnp.zeros((self.config.planner.horizon, self.config.model.action_dim))

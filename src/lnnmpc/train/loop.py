@@ -7,9 +7,9 @@ the seed phase) and :func:`train_chunk` (MPPI with exploration noise, ``num_envs
 there is one update per agent step).
 
 The loop is agent-agnostic: it talks to the agent only through the protocol documented in
-:mod:`lnnmpc.agents.registry` (``init``, ``update``, ``sequence_length``, ``initial_carry``, ``act``,
-``observe``, ``replay_record``). Each environment has an agent-defined *acting carry* (TD-MPC2: the planner's
-warm start; LNN agents: also the encoder state and the previous action); the loop resets it to
+:mod:`lnnmpc.agents.registry` (``init``, ``update``, ``sequence_length``, ``sequence_lead``, ``initial_carry``,
+``act``, ``observe``, ``replay_record``). Each environment has an agent-defined *acting carry* (TD-MPC2: the
+planner's warm start; LNN agents: also the encoder state and the previous action); the loop resets it to
 ``agent.initial_carry()`` at every episode start, before acting.
 
 Replay records come from ``agent.replay_record(obs_t, a_t, r_t, dt_t, carry_t)`` with ``carry_t`` the carry the
@@ -17,7 +17,8 @@ agent acted from at step t (after the reset): obs_t, the action a_t and the rewa
 the agent stores; the final observation of an episode is its own record (action 0, reward 0), written on the
 iteration that resets the environment (an iteration that takes no environment step; episodes have a fixed
 length, so all environments of a seed reset together). Updates sample windows of ``agent.sequence_length``
-records that never cross an episode.
+records that never cross an episode after their first ``agent.sequence_lead`` records (0 but for an LNN agent's
+burn-in with ``learn_episode_starts``); the batch carries the records' episode-start flags as ``"first"``.
 """
 
 from __future__ import annotations
@@ -110,8 +111,9 @@ class TrainingLoop:
     def _update(self, ts: TrainState, key: jax.Array):
         k_sample, k_update = jax.random.split(key)
         with jax.named_scope("replay_sample"):
-            records, valid = replay_sample(ts.replay, k_sample, self.config.batch_size, self.agent.sequence_length)
-        agent, metrics = self.agent.update(ts.agent, records, k_update)
+            records, first, valid = replay_sample(ts.replay, k_sample, self.config.batch_size,
+                                                  self.agent.sequence_length, self.agent.sequence_lead)
+        agent, metrics = self.agent.update(ts.agent, {**records, "first": first}, k_update)
         # Keep the old agent if the buffer had no valid window yet (never after the seed phase).
         with jax.named_scope("keep_if_valid"):
             agent = jax.tree_util.tree_map(lambda new, old: jnp.where(valid.all(), new, old), agent, ts.agent)
