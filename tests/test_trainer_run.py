@@ -347,3 +347,31 @@ def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache):
     frames = [np.frombuffer(f, np.uint8).reshape(72, 96, 3) for f in reader]
     assert meta["size"] == (96, 72) and len(frames) == 12
     assert frames[-1][40:].std() > 5  # a rendered scene below the text band, not a blank image
+
+
+def test_video_films_many_episodes_into_a_folder_and_keeps_the_falls(reference, tmp_path, cache):
+    """``video --episodes 3``: three episodes at once, from three initial states, each streamed to its own MP4 of
+    every agent step; ``keep_films`` then deletes the films of episodes that did not end below the threshold."""
+    import imageio_ffmpeg
+
+    from lnnmpc.train.video import keep_films
+
+    folder = tmp_path / "films"
+    result = _run(["video", str(reference), "--out", str(folder), "--episodes", "3", "--falls-below", "1e9",
+                   "--max-steps", "6", "--width", "64", "--height", "48"], cache, MUJOCO_GL="egl")
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "returns of 3 episodes: mean " in result.stdout and "filmed below 1e+09: 0 (" in result.stdout
+    films = sorted(folder.iterdir())
+    assert [f.name for f in films] == ["episode-0.mp4", "episode-1.mp4", "episode-2.mp4"]
+    first_frames = []
+    for film in films:
+        reader = imageio_ffmpeg.read_frames(str(film))
+        next(reader)
+        frames = [np.frombuffer(f, np.uint8).reshape(48, 64, 3) for f in reader]
+        assert len(frames) == 6
+        first_frames.append(frames[0].astype(int))
+    assert np.abs(first_frames[0] - first_frames[1]).max() > 0  # other initial states, other pictures
+    kept = keep_films(np.array([50.0, 400.0, 10.0]), [str(f) for f in films], below=100.0)
+    assert kept == {0: (50.0, str(films[0])), 2: (10.0, str(films[2]))}
+    assert sorted(f.name for f in folder.iterdir()) == ["episode-0.mp4", "episode-2.mp4"]
+

@@ -4,7 +4,7 @@
     python -m lnnmpc.train.cli train --resume runs/walker-run/tdmpc2/20260101-120000-noise0.1-flicker0.2
     python -m lnnmpc.train.cli train --task walker-run --agent cfc-zp-det --set lambda_=0 --check  # print only
     python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control]
-    python -m lnnmpc.train.cli video RUN [--out episode.gif]
+    python -m lnnmpc.train.cli video RUN [--out episode.gif] [--episodes 50 --falls-below 400]
     python -m lnnmpc.train.cli report RUN            # redraw curve.png and summary.md
 
 ``train`` without a subcommand name also works (``python -m lnnmpc.train.cli --task ...``). Every option maps to
@@ -90,6 +90,11 @@ def _video_parser(sub) -> None:
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--max-steps", type=int, default=None, help="cut the episode after this many agent steps")
+    p.add_argument("--episodes", type=int, default=1,
+                   help="film this many episodes at once (initial states episode-seed + e) into a folder, "
+                        "--out or <run>/videos/<step>/, as episode-<e>.mp4")
+    p.add_argument("--falls-below", type=float, default=None,
+                   help="with --episodes: keep only the films of episodes whose return ends below this")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -159,10 +164,14 @@ def run_command(args: argparse.Namespace) -> None:
                  seed=args.seed, out=args.out)
     elif args.command == "video":
         os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen OpenGL without a display; before dm_control loads
-        from lnnmpc.train.video import record
+        from lnnmpc.train.video import record, record_episodes
 
-        record(args.run, out=args.out, obs=args.obs, checkpoint=args.checkpoint, seed_index=args.seed_index,
-               episode_seed=args.episode_seed, width=args.width, height=args.height, max_steps=args.max_steps)
+        options = dict(out=args.out, obs=args.obs, checkpoint=args.checkpoint, seed_index=args.seed_index,
+                       episode_seed=args.episode_seed, width=args.width, height=args.height, max_steps=args.max_steps)
+        if args.episodes == 1 and args.falls_below is None:
+            record(args.run, **options)
+        else:
+            record_episodes(args.run, episodes=args.episodes, below=args.falls_below, **options)
     else:
         from lnnmpc.train.report import write_reports
 

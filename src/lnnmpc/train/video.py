@@ -61,16 +61,78 @@ def encode(frames: list[np.ndarray], path: str, fps: float) -> str:
     return path
 
 
-def record(run: str, *, out: str | None = None, obs: str | dict | None = None, checkpoint: int | None = None,
-           seed_index: int = 0, episode_seed: int = 0, width: int = 320, height: int = 240,
-           max_steps: int | None = None, camera: int = 0) -> str:
-    """Renders one deterministic episode of seed ``seed_index``'s policy; returns the video path.
+class _EpisodeWriters:
+    """One streaming MP4 writer per episode (``<folder>/episode-<e>.mp4``): frames go to ffmpeg as they are
+    drawn, so filming many episodes holds no frames in memory."""
 
-    ``out`` defaults to ``<run>/videos/<checkpoint>.mp4``. ``max_steps`` cuts the episode (agent steps).
-    """
+    def __init__(self, folder: str, episodes: int, fps: float):
+        os.makedirs(folder, exist_ok=True)
+        self.paths = [os.path.join(folder, f"episode-{e}.mp4") for e in range(episodes)]
+        self.fps, self.writers, self.frames = fps, [None] * episodes, [0] * episodes
+
+    def send(self, episode: int, frame: np.ndarray) -> None:
+        if self.writers[episode] is None:
+            import imageio_ffmpeg
+
+            height, width = frame.shape[:2]
+            self.writers[episode] = imageio_ffmpeg.write_frames(
+                self.paths[episode], (width, height), fps=self.fps, codec="libx264", pix_fmt_out="yuv420p",
+                macro_block_size=2, ffmpeg_log_level="error")
+            self.writers[episode].send(None)
+        self.writers[episode].send(np.ascontiguousarray(frame))
+        self.frames[episode] += 1
+
+    def close(self) -> None:
+        for writer in self.writers:
+            if writer is not None:
+                writer.close()
+
+
+def record_episodes(run: str, *, episodes: int, below: float | None = None, out: str | None = None,
+                    obs: str | dict | None = None, checkpoint: int | None = None, seed_index: int = 0,
+                    episode_seed: int = 0, width: int = 320, height: int = 240, max_steps: int | None = None,
+                    camera: int = 0) -> dict[int, tuple[float, str]]:
+    """Films ``episodes`` deterministic episodes of seed ``seed_index``'s policy at once (episode e starts from
+    dm_control's initial state ``episode_seed + e``) into ``out`` (a folder, default
+    ``<run>/videos/<checkpoint>/``) as ``episode-<e>.mp4``, and keeps the films of the episodes whose return
+    ends below ``below`` (all with None): the falls of a walker among many episodes. Returns {episode: (return,
+    path)} of the films kept."""
+    from lnnmpc.train.config import require_int
+
+    require_int("episodes", episodes, 1)
     os.environ.setdefault("MUJOCO_GL", "egl")  # only effective before dm_control is first imported
+    policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
+    folder = out or os.path.join(run, "videos", str(policy.checkpoint))
+    if os.path.splitext(folder)[1].lower().lstrip(".") in FORMATS:
+        raise ConfigError(f"--episodes > 1 films into a folder, not the file {folder!r}")
+    writers = _EpisodeWriters(folder, episodes, _fps(env))
+    try:
+        returns = _play(policy, env, state, episodes, episode_seed, width, height, camera, writers.send)
+    finally:
+        writers.close()
+    kept = keep_films(returns[0], writers.paths, below)
+    listed = ", ".join(f"{e} ({r:.1f})" for e, (r, _) in kept.items()) or "none"
+    sys.stdout.write(f"returns of {episodes} episodes: mean {returns.mean():.1f}, lowest {returns.min():.1f}; "
+                     f"filmed{'' if below is None else f' below {below:g}'}: {listed} -> {folder}\n")
+    return kept
+
+
+def keep_films(returns: np.ndarray, paths: list[str], below: float | None) -> dict[int, tuple[float, str]]:
+    """Deletes the films (one per episode, ``returns`` (episodes,)) of the episodes whose return is not below
+    ``below`` (None keeps all); returns {episode: (return, path)} of those kept."""
+    kept = {}
+    for e, path in enumerate(paths):
+        if below is None or returns[e] < below:
+            kept[e] = (float(returns[e]), path)
+        else:
+            os.remove(path)
+    return kept
+
+
+def _policy_and_env(run, obs, checkpoint, seed_index, max_steps):
+    """The run's policy, its evaluation environment (``obs`` or the run's corruptions, cut at ``max_steps``) and
+    seed ``seed_index``'s agent state (a seed axis of one)."""
     from lnnmpc import envs
-    from lnnmpc.train.dm_backend import run_episodes
 
     policy = load_policy(run, checkpoint)
     config = policy.config
@@ -81,17 +143,40 @@ def record(run: str, *, out: str | None = None, obs: str | dict | None = None, c
     check_observation_size(env, policy)
     if max_steps is not None:
         env = _shortened(env, max_steps)
-    state = jax.tree_util.tree_map(lambda x: x[seed_index:seed_index + 1], policy.agent_state)
-    frames = []
+    return policy, env, jax.tree_util.tree_map(lambda x: x[seed_index:seed_index + 1], policy.agent_state)
 
-    def on_step(_, __, physics, total):
+
+def _play(policy, env, state, episodes, episode_seed, width, height, camera, send) -> np.ndarray:
+    """Plays the episodes on dm_control, sending each agent step's overlaid frame as ``send(episode, frame)``;
+    returns the returns (1, episodes)."""
+    from lnnmpc.train.dm_backend import run_episodes
+
+    steps = [0] * episodes
+    config = policy.config
+
+    def on_step(_, episode, physics, total):
+        steps[episode] += 1
         frame = physics.render(height=height, width=width, camera_id=camera)
         lines = [f"{config.task} | {config.agent} | {policy.checkpoint:,} env steps",
-                 f"step {len(frames) + 1:3d}  return {total:6.1f}"]
-        frames.append(overlay(frame, lines))
+                 f"step {steps[episode]:3d}  return {total:6.1f}"]
+        send(episode, overlay(frame, lines))
 
-    returns = run_episodes(env, policy.loop.agent, state, 1, jax.random.key(episode_seed), seed=episode_seed,
-                           on_step=on_step)
+    return run_episodes(env, policy.loop.agent, state, episodes, jax.random.key(episode_seed), seed=episode_seed,
+                        on_step=on_step)
+
+
+def record(run: str, *, out: str | None = None, obs: str | dict | None = None, checkpoint: int | None = None,
+           seed_index: int = 0, episode_seed: int = 0, width: int = 320, height: int = 240,
+           max_steps: int | None = None, camera: int = 0) -> str:
+    """Renders one deterministic episode of seed ``seed_index``'s policy; returns the video path.
+
+    ``out`` defaults to ``<run>/videos/<checkpoint>.mp4``. ``max_steps`` cuts the episode (agent steps).
+    """
+    os.environ.setdefault("MUJOCO_GL", "egl")  # only effective before dm_control is first imported
+    policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
+    frames = []
+    returns = _play(policy, env, state, 1, episode_seed, width, height, camera,
+                    lambda _, frame: frames.append(frame))
     fps = _fps(env)
     path = encode(frames, out or os.path.join(run, "videos", f"{policy.checkpoint}.mp4"), fps)
     sys.stdout.write(f"episode return {returns[0, 0]:.1f}; {len(frames)} frames at {fps:g} fps -> {path}\n")
