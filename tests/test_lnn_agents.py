@@ -493,12 +493,13 @@ def test_scan_unroll_changes_speed_only(name):
         tiny(name, scan_unroll=0)
 
 
-def test_learn_episode_starts_restarts_the_burn_in_at_the_episode_start():
+@pytest.mark.parametrize("name", ["cfc-zp-det", "ltc-zp-det"])
+def test_learn_episode_starts_restarts_the_burn_in_at_the_episode_start(name):
     """With ``learn_episode_starts`` a window may begin up to T records before its episode (``sequence_lead``):
     the encoder restarts from the stored state at the ``first`` record, so the latents equal a fresh unroll from
     that record and nothing before it matters; without the option the same records do change them."""
-    agent = tiny("cfc-zp-det", learn_episode_starts=True)
-    plain = tiny("cfc-zp-det")
+    agent = tiny(name, learn_episode_starts=True)
+    plain = tiny(name)
     T, N = agent.config.burn_in, agent.config.model.hidden_size
     assert (agent.sequence_lead, plain.sequence_lead, agent.sequence_length) == (T, 0, plain.sequence_length)
     assert "learn_episode_starts" in tiny("cfc-zp-det", burn_in=0).config.inactive_fields()
