@@ -1,4 +1,5 @@
-"""``make video RUN=<folder>``: one evaluation episode rendered offscreen to MP4 or GIF, with the return overlaid.
+"""``make video RUN=<folder>``: one evaluation episode rendered offscreen to MP4 or GIF, with the return overlaid;
+``make video RUN=<folder> FILMS=N FALLS=R``: N episodes at once, keeping the films of those that ended below R.
 
 The episode runs on dm_control's simulator (:mod:`lnnmpc.train.dm_backend`, the simulator a policy trained on
 MJX must transfer to) with the run's evaluation corruptions; after every agent step MuJoCo's renderer draws the
@@ -17,7 +18,7 @@ import jax
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from lnnmpc.train.config import ConfigError, parse_obs
+from lnnmpc.train.config import ConfigError, parse_obs, require_int
 from lnnmpc.train.evaluate import check_observation_size, load_policy
 
 FORMATS = ("mp4", "gif")
@@ -49,16 +50,22 @@ def encode(frames: list[np.ndarray], path: str, fps: float) -> str:
         images = [Image.fromarray(f) for f in frames]
         images[0].save(path, save_all=True, append_images=images[1:], duration=round(1000 / fps), loop=0)
         return path
-    import imageio_ffmpeg
-
     height, width = frames[0].shape[:2]
-    writer = imageio_ffmpeg.write_frames(path, (width, height), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
-                                         macro_block_size=2, ffmpeg_log_level="error")
-    writer.send(None)
+    writer = _mp4_writer(path, width, height, fps)
     for frame in frames:
         writer.send(np.ascontiguousarray(frame))
     writer.close()
     return path
+
+
+def _mp4_writer(path: str, width: int, height: int, fps: float):
+    """A started imageio-ffmpeg generator that encodes the frames sent to it as H.264 MP4 at ``path``."""
+    import imageio_ffmpeg
+
+    writer = imageio_ffmpeg.write_frames(path, (width, height), fps=fps, codec="libx264", pix_fmt_out="yuv420p",
+                                         macro_block_size=2, ffmpeg_log_level="error")
+    writer.send(None)
+    return writer
 
 
 class _EpisodeWriters:
@@ -68,19 +75,13 @@ class _EpisodeWriters:
     def __init__(self, folder: str, episodes: int, fps: float):
         os.makedirs(folder, exist_ok=True)
         self.paths = [os.path.join(folder, f"episode-{e}.mp4") for e in range(episodes)]
-        self.fps, self.writers, self.frames = fps, [None] * episodes, [0] * episodes
+        self.fps, self.writers = fps, [None] * episodes
 
     def send(self, episode: int, frame: np.ndarray) -> None:
         if self.writers[episode] is None:
-            import imageio_ffmpeg
-
             height, width = frame.shape[:2]
-            self.writers[episode] = imageio_ffmpeg.write_frames(
-                self.paths[episode], (width, height), fps=self.fps, codec="libx264", pix_fmt_out="yuv420p",
-                macro_block_size=2, ffmpeg_log_level="error")
-            self.writers[episode].send(None)
+            self.writers[episode] = _mp4_writer(self.paths[episode], width, height, self.fps)
         self.writers[episode].send(np.ascontiguousarray(frame))
-        self.frames[episode] += 1
 
     def close(self) -> None:
         for writer in self.writers:
@@ -97,8 +98,6 @@ def record_episodes(run: str, *, episodes: int, below: float | None = None, out:
     ``<run>/videos/<checkpoint>/``) as ``episode-<e>.mp4``, and keeps the films of the episodes whose return
     ends below ``below`` (all with None): the falls of a walker among many episodes. Returns {episode: (return,
     path)} of the films kept."""
-    from lnnmpc.train.config import require_int
-
     require_int("episodes", episodes, 1)
     os.environ.setdefault("MUJOCO_GL", "egl")  # only effective before dm_control is first imported
     policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
