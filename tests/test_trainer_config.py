@@ -370,3 +370,29 @@ def test_a_run_folder_trains_in_one_process_at_a_time(tmp_path):
             runfolder.hold_run(run)  # a second open of the lock conflicts even within one process
     assert lock.closed
     runfolder.hold_run(run).close()
+
+
+def test_a_committed_run_from_before_the_newest_agent_fields_reads_as_the_same_configuration():
+    """A GPU run folder filed under experiments/results before the agent's newest fields existed
+    (``learn_episode_starts``) compares equal to its configuration built by today's code: every field added
+    since holds its old behaviour's value in ``ADDED_AGENT_FIELDS``, so such a run still resumes and pools
+    (``tables --pool``) with new runs of the same configuration."""
+    import json
+    import os
+
+    from lnnmpc.agents.registry import make_agent
+    from lnnmpc.train.compat import agent_config_changes, agent_config_json
+
+    run = os.path.join(os.path.dirname(__file__), "..", "experiments", "results",
+                       "cfc-walker-simnorm-latent512-200k-h200", "walker-simnorm-latent512-seed1")
+    with open(os.path.join(run, "config.json")) as f:
+        saved = json.load(f)
+    assert "learn_episode_starts" not in saved["agent_config"]  # the run predates it
+    config = TrainConfig.from_dict(saved["config"])
+    agent = make_agent(config.agent, 24, 6, model_size=config.model_size, small=config.small,
+                       overrides=config.overrides or None).config
+    assert agent_config_changes(saved["agent_config"], agent_config_json(agent), agent.inactive_fields()) == []
+    new = make_agent(config.agent, 24, 6, overrides={**config.overrides, "learn_episode_starts": True}).config
+    assert agent_config_changes(saved["agent_config"], agent_config_json(new), new.inactive_fields()) == [
+        ("learn_episode_starts", False, True)]
+

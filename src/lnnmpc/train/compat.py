@@ -56,7 +56,7 @@ ADDED_AGENT_FIELDS = {"nll_beta": 0.0, "model.input_transform": "none", "joint_g
                       "model.simnorm_layer_norm": False, "flat_optimizer": False, "rollout_steps": 1,
                       "scan_unroll": 1, "rollout_stride": 1, "model.latent_head": "none", "model.simnorm_dim": 8,
                       "model.latent_size": 0, "model.latent_obs_skip": False,
-                      "model.latent_head_hidden": 0}
+                      "model.latent_head_hidden": 0, "learn_episode_starts": False}
 
 
 def check_agent_config(run: str, agent_config) -> None:
