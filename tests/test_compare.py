@@ -159,9 +159,11 @@ def test_tables_give_each_run_per_evaluation_stats_and_speed(tmp_path, capsys):
     # Each run's last evaluation split at a return: A's step 30 has 690 under 695; all of B's one episode is under.
     assert tables_main([a, b, "--labels", "A", "B", "--returns-only", "--falls-below", "695"]) == 0
     falls = capsys.readouterr().out.split("\n\n")[1].splitlines()
-    assert falls[0] == "| run | env steps | episodes | under 695 | mean | mean of the others | best | worst |"
-    assert falls[2:] == ["| A | 30 | 4 | 1 | 800.0 | 836.7 | 910.0 | 690.0 |",
-                         "| B | 20 | 1 | 1 | 50.0 |  | 50.0 | 50.0 |"]
+    assert falls[0] == ("| run | env steps | episodes | under 695 | under 695, last 3 evaluations | mean | "
+                        "mean of the others | best | worst |")
+    # over A's last 3 evaluations 100, 300, 500, 600, 600 and 690 are under 695: 6 of 12 episodes
+    assert falls[2:] == ["| A | 30 | 4 | 1 | 6 of 12 | 800.0 | 836.7 | 910.0 | 690.0 |",
+                         "| B | 20 | 1 | 1 | 1 of 1 | 50.0 |  | 50.0 | 50.0 |"]
     with pytest.raises(SystemExit):
         tables_main([a, "--falls-below", "nan"])
     assert "--falls-below needs a finite return, got nan" in capsys.readouterr().err
@@ -206,7 +208,8 @@ def test_tables_pool_runs_of_one_configuration_into_one_column(tmp_path, capsys)
     assert lines[2].endswith("| 300.0 ± 238.0 | 216.0 | 200 / 600 / 100 |")
     assert lines[3].endswith("| 600.0 ± 163.3 | 163.3 | 800 / 600 / 400 |")
     assert lines[4].endswith("| 900.0 ± 0.0 |  | 900 |  |  |  |")  # only b evaluated at 30: not pooled
-    assert falls.splitlines()[-1] == "| A+B | 20 | 3 | 1 | 600.0 | 700.0 | 800.0 | 400.0 |"
+    # over the pooled evaluations (10 and 20): 100, 300, 0, 200 and 400 are under 500
+    assert falls.splitlines()[-1] == "| A+B | 20 | 3 | 1 | 5 of 9 | 600.0 | 700.0 | 800.0 | 400.0 |"
     # runs that differ in what they learn are refused, naming the setting; so is pooling one run
     c = _run(tmp_path / "c", "tdmpc2", {10: [[1.0]]}, seeds=1, batch_size=128)
     assert tables_main([a, c, "--pool", "x"]) == 2

@@ -9,10 +9,11 @@
 Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds × episodes,
 the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations. A run that
 has no evaluation at a step another run has gets an empty cell. With ``--falls-below R``, a second table looks at
-each run's last evaluation: how many episodes returned under R (a walker that fell), the mean of all, of the others,
-and the best and worst episode. ``--pool LABEL`` adds one column of all the runs' seeds together (runs of one
-configuration started with other master seeds, e.g. one seed per call on a one-GPU machine); runs joined by ``+``
-(``runs/a0+runs/a1``) are one pooled column of their own, and the speed and commands tables list them one by one.
+each run's last evaluation: how many episodes returned under R (a walker that fell; also counted over the last 3
+evaluations), the mean of all, of the others, and the best and worst episode. ``--pool LABEL`` adds one column of
+all the runs' seeds together (runs of one configuration started with other master seeds, e.g. one seed per call on a
+one-GPU machine); runs joined by ``+`` (``runs/a0+runs/a1``) are one pooled column of their own, and the speed and
+commands tables list them one by one.
 Speed (from each ``timing.csv``, wall seconds): the process's start (imports, devices; runs since the trainer logs
 it), compilation, training chunks (total, count, environment steps per chunk per seed), the median chunk's
 environment steps per second over all seeds and per seed, evaluations (total, count) and everything logged.
@@ -78,15 +79,18 @@ def returns_table(curves: list[dict]) -> str:
 
 def falls_table(curves: list[dict], threshold: float) -> str:
     """The markdown table of each run's last evaluation split at ``threshold`` (``curves``: :func:`load_curves`):
-    episodes, how many returned under it, the mean of all and of the others (empty when all are under), best and
-    worst episode."""
-    lines = [f"| run | env steps | episodes | under {threshold:g} | mean | mean of the others | best | worst |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    episodes, how many returned under it (and how many of the last 3 evaluations' episodes did), the mean of all
+    and of the others (empty when all are under), best and worst episode."""
+    lines = [f"| run | env steps | episodes | under {threshold:g} | under {threshold:g}, last {LAST_EVALUATIONS} "
+             "evaluations | mean | mean of the others | best | worst |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for curve in curves:
-        last = max(int(r["env_step"]) for r in curve["rows"])
-        returns = step_returns(curve["rows"], last)
+        steps = sorted({int(r["env_step"]) for r in curve["rows"]})
+        returns = step_returns(curve["rows"], steps[-1])
         others = returns[returns >= threshold]
-        lines.append(f"| {curve['label']} | {last:,} | {returns.size} | {returns.size - others.size} | "
+        recent = np.concatenate([step_returns(curve["rows"], step) for step in steps[-LAST_EVALUATIONS:]])
+        lines.append(f"| {curve['label']} | {steps[-1]:,} | {returns.size} | {returns.size - others.size} | "
+                     f"{int((recent < threshold).sum())} of {recent.size} | "
                      f"{returns.mean():.1f} | {f'{others.mean():.1f}' if others.size else ''} | "
                      f"{returns.max():.1f} | {returns.min():.1f} |")
     return "\n".join(lines)
