@@ -496,6 +496,11 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     (batch / "commands.txt").write_text("t55 (GPU 0): experiment table5_5 --agents tdmpc2 --seeds 1 --steps 50000\n")
     with tarfile.open(tmp_path / "results.tar.gz", "w:gz") as tar:
         tar.add(batch, arcname=".")
+    (run_dir / "policy.npz").write_bytes(b"study policy")  # packed apart, as device_batch.sh does
+    (batch / "plain-run" / "policy.npz").write_bytes(b"plain policy")
+    with tarfile.open(tmp_path / "policies.tar", "w") as tar:
+        for path in (run_dir / "policy.npz", batch / "plain-run" / "policy.npz"):
+            tar.add(path, arcname="./" + str(path.relative_to(batch)))
     work = tmp_path / "work"
     work.mkdir()
     script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "ingest_batch.sh")
@@ -512,6 +517,9 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     assert table.count("| cfc-zp-det | not yet run |") == 3 and table.count("not yet run") == 6 * 3 + 2
     assert "plain run (file it by hand): runs/batch/plain-run, copied to runs/ingested/plain-run" in result.stdout
     assert (work / "runs" / "ingested" / "plain-run" / "config.json").read_text() == "{}"
+    assert f"policies 2 policy.npz from {tmp_path / 'policies.tar'}" in result.stdout  # each beside its run
+    assert (filed / "policy.npz").read_bytes() == b"study policy"
+    assert (work / "runs" / "ingested" / "plain-run" / "policy.npz").read_bytes() == b"plain policy"
     assert "(no table for plain-run)" in result.stdout  # its config.json is no trainer's: said, not fatal
     assert "(no speed table)" in result.stdout and "(no commands)" in result.stdout
 

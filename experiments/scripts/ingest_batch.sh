@@ -3,6 +3,8 @@
 #
 #   experiments/scripts/ingest_batch.sh RESULTS_TAR_GZ
 #
+# A policies.tar beside RESULTS_TAR_GZ (the runs' policy.npz files, packed apart by device_batch.sh) is unpacked
+# over the run folders first, so each filed run keeps its trained policy (git ignores policy.npz);
 # - every study run folder of the batch (runs/batch/experiments/<task>/<agent>/<condition>, no checkpoints) is
 #   copied into experiments/results/study-runs/, the runs-dir the committed study tables are built from (but
 #   Figure 5.19's: experiments/results/study-runs-fig5_19-h100/). A newer copy of a run replaces the older one,
@@ -33,6 +35,11 @@ last_env_step() {  # RUN_DIR: the last env_step its eval.csv logged (0 without e
 }
 trap 'rm -rf "$tmp"' EXIT
 tar -xzf "$tarball" -C "$tmp"
+policies="$(dirname "$tarball")/policies.tar"
+if [ -f "$policies" ]; then
+    tar -xf "$policies" -C "$tmp"
+    echo "policies $(tar -tf "$policies" | grep -c 'policy[.]npz$') policy.npz from $policies"
+fi
 mkdir -p "$runs"
 if [ -d "$tmp/experiments" ]; then
     for run in "$tmp"/experiments/*/*/*/; do
