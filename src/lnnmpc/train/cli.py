@@ -67,8 +67,8 @@ def _train_parser(sub) -> None:
 
 
 def _eval_parser(sub) -> None:
-    p = sub.add_parser("eval", help="evaluate a run's checkpoint (or policy.npz) under any corruption, on MJX or "
-                                              "dm_control")
+    p = sub.add_parser("eval", help="evaluate a run's checkpoint (or policy.npz) under any corruption, on MJX "
+                                    "or dm_control")
     p.add_argument("run", help="run folder")
     p.add_argument("--obs", default=None, help="corruptions (default: the run's evaluation corruptions)")
     p.add_argument("--episodes", type=int, default=10, help="episodes per seed")

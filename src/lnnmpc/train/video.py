@@ -103,7 +103,8 @@ def record_episodes(run: str, *, episodes: int, below: float | None = None, out:
     policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
     folder = out or os.path.join(run, "videos", str(policy.checkpoint))
     if os.path.splitext(folder)[1].lower().lstrip(".") in FORMATS:
-        raise ConfigError(f"--episodes > 1 films into a folder, not the file {folder!r}")
+        raise ConfigError(f"filming several episodes (--episodes, --falls-below) writes into a folder, not the "
+                          f"file {folder!r}")
     writers = _EpisodeWriters(folder, episodes, _fps(env))
     try:
         returns = _play(policy, env, state, episodes, episode_seed, width, height, camera, writers.send)
