@@ -71,11 +71,12 @@ compare: $(STAMP)
 # make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"] [FALLS=400]
 #   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means), the speed and
 #   the commands that started them; FALLS=R adds each run's last evaluation split at return R (walker falls);
-#   POOL=LABEL adds one column of all the runs' seeds together (one configuration, other master seeds)
+#   POOL=LABEL adds one column of all the runs' seeds together (one configuration, other master seeds);
+#   EVALS=NAME reads each run's evals/NAME (what `make eval` wrote) instead of the training's eval.csv
 FALLS ?=
 tables: $(STAMP)
 	$(PY) -m lnnmpc.train.tables $(RUNS) $(if $(LABELS),--labels $(LABELS)) $(if $(FALLS),--falls-below $(FALLS)) \
-		$(if $(POOL),--pool "$(POOL)")
+		$(if $(POOL),--pool "$(POOL)") $(if $(EVALS),--evals "$(EVALS)")
 
 # make experiment NAME=table5_3 [ARGS="--seeds 3 --agents tdmpc2,cfc-zp-det --steps 200000 --dry-run"]
 #   trains (resumes) the study's grid, evaluates it and writes experiments/results/studies/NAME.{csv,md}

@@ -237,6 +237,35 @@ def test_tables_pool_runs_of_one_configuration_into_one_column(tmp_path, capsys)
     assert "cannot pool a run with itself" in capsys.readouterr().err
 
 
+def test_tables_read_an_eval_commands_csv_in_place_of_the_trainings(tmp_path, capsys):
+    from lnnmpc.train.tables import main as tables_main
+
+    # two one-seed runs whose final policies were evaluated again with more episodes (`cli eval` writes evals/*.csv,
+    # with the backend and corruption columns); the training's own eval.csv must not be read
+    a = _run(tmp_path / "a", "tdmpc2", {20: [[1.0]]}, seeds=1)
+    b = _run(tmp_path / "b", "tdmpc2", {20: [[2.0]]}, seeds=1, seed=5)
+    fields = ["env_step", "seed", "episode", "return", "backend", "obs"]
+    for run, returns in ((a, [700.0, 760.0, 10.0, 790.0]), (b, [750.0, 770.0])):
+        rows = [{"env_step": 20, "seed": 0, "episode": e, "return": r, "backend": "dm_control", "obs": "clean"}
+                for e, r in enumerate(returns)]
+        os.makedirs(os.path.join(run, "evals"))
+        runfolder.write_csv(os.path.join(run, "evals", "dm_control-clean-20.csv"), fields, rows)
+    assert tables_main([f"{a}+{b}", "--labels", "AB", "--evals", "dm_control-clean-20.csv", "--returns-only",
+                        "--falls-below", "400"]) == 0
+    returns, falls = capsys.readouterr().out.split("\n\n")
+    # six episodes (mean 630, std 278.6 over all); seed means 565 (a) and 760 (b), their std 97.5
+    assert returns.splitlines()[2] == "| 20 | 630.0 ± 278.6 | 97.5 | 565 / 760 |"
+    # one of six under 400; the other five average 754
+    assert falls.splitlines()[-1] == "| AB | 20 | 6 | 1 | 1 of 6 | 630.0 | 754.0 | 790.0 | 10.0 |"
+    # a name the runs do not hold is refused, naming what evals/ holds
+    assert tables_main([a, "--evals", "mjx-clean-20.csv"]) == 2
+    assert "no evaluation rows in evals/mjx-clean-20.csv; its evals/ holds dm_control-clean-20.csv" in \
+        capsys.readouterr().err
+    c = _run(tmp_path / "c", "tdmpc2", {20: [[1.0]]}, seeds=1)
+    assert tables_main([c, "--evals", "dm_control-clean-20.csv"]) == 2
+    assert "its evals/ holds no CSV (write one with `cli eval`)" in capsys.readouterr().err
+
+
 def test_reports_without_plots_rewrite_only_the_summary(tmp_path):
     from lnnmpc.train import report
 

@@ -43,14 +43,16 @@ def default_label(config: dict) -> str:
     return " ".join(parts)
 
 
-def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
+def load_curves(runs: list[str], labels: list[str] | None = None, evals: str | None = None) -> list[dict]:
     """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table", "rows", "config"} (table:
     :func:`eval_table` rows; rows: eval.csv's own rows; config: the run's whole config.json). A run given as
     ``a+b+c`` (run folders joined by ``+``, where no folder has that name) is those runs pooled into one
-    (:func:`pool_curves`; label by default the first run's, with the pooled seed count).
+    (:func:`pool_curves`; label by default the first run's, with the pooled seed count). ``evals`` names a CSV
+    under each run's ``evals/`` folder (what ``cli eval`` wrote, e.g. ``dm_control-clean-200192.csv``) to read
+    instead of the training's ``eval.csv``.
 
-    Raises ConfigError naming a folder that is not a run folder or has no evaluation yet, and a label count
-    that does not match the runs."""
+    Raises ConfigError naming a folder that is not a run folder or has no evaluation yet (with ``evals``: the
+    files its ``evals/`` holds), and a label count that does not match the runs."""
     if not runs:
         raise ConfigError("give at least one run folder")
     if labels is not None and len(labels) != len(runs):
@@ -58,7 +60,7 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
     curves = []
     for i, run in enumerate(runs):
         if "+" in run and not os.path.exists(run):
-            pooled = pool_curves(load_curves(run.split("+")), "")
+            pooled = pool_curves(load_curves(run.split("+"), evals=evals), "")
             seeds = len({int(r["seed"]) for r in pooled["rows"]})
             pooled["label"] = labels[i] if labels else f"{default_label(pooled['config'])} ({seeds} seeds pooled)"
             for part in pooled["parts"]:  # (for the per-run tables: speed, commands)
@@ -66,8 +68,13 @@ def load_curves(runs: list[str], labels: list[str] | None = None) -> list[dict]:
             curves.append(pooled)
             continue
         config = runfolder.read_config(run)
-        rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
+        rows = runfolder.read_csv(os.path.join(run, "eval.csv" if evals is None else os.path.join("evals", evals)))
         table = eval_table(rows)
+        if not table and evals is not None:
+            held = sorted(f for f in os.listdir(os.path.join(run, "evals"))
+                          if f.endswith(".csv")) if os.path.isdir(os.path.join(run, "evals")) else []
+            raise ConfigError(f"{run!r} has no evaluation rows in evals/{evals}; its evals/ holds "
+                              + (", ".join(held) if held else "no CSV (write one with `cli eval`)"))
         if not table:
             raise ConfigError(f"{run!r} has no evaluation rows in eval.csv yet")
         c = config["config"]

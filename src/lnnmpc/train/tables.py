@@ -5,6 +5,7 @@
     python -m lnnmpc.train.tables runs/a runs/b --returns-only --falls-below 400   # walker: who fell, and the rest
     python -m lnnmpc.train.tables runs/seed0 runs/seed1 runs/seed2 --pool "3 seeds"  # one-seed runs as one
     python -m lnnmpc.train.tables runs/a0+runs/a1 runs/b0+runs/b1 --labels A B       # two pooled columns
+    python -m lnnmpc.train.tables runs/s0+runs/s1 --evals dm_control-clean-200192.csv --falls-below 400
 
 Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds × episodes,
 the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations. A run that
@@ -13,7 +14,9 @@ each run's last evaluation: how many episodes returned under R (a walker that fe
 evaluations), the mean of all, of the others, and the best and worst episode. ``--pool LABEL`` adds one column of
 all the runs' seeds together (runs of one configuration started with other master seeds, e.g. one seed per call on a
 one-GPU machine); runs joined by ``+`` (``runs/a0+runs/a1``) are one pooled column of their own, and the speed and
-commands tables list them one by one.
+commands tables list them one by one. ``--evals NAME`` reads each run's ``evals/NAME`` instead of ``eval.csv``: the
+CSV an ``eval`` command wrote (``python -m lnnmpc.train.cli eval RUN --episodes 50 --backend dm_control``), so a
+final policy's many-episode evaluation gets the same tables, pooled and split at a return as the training's.
 Speed (from each ``timing.csv``, wall seconds): the process's start (imports, devices; runs since the trainer logs
 it), compilation, training chunks (total, count, environment steps per chunk per seed), the median chunk's
 environment steps per second over all seeds and per seed, evaluations (total, count) and everything logged.
@@ -152,12 +155,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pool", default=None, metavar="LABEL",
                    help="also one column LABEL of every run's seeds together, at the steps all runs evaluated "
                    "(runs of one configuration with other master seeds; refused for runs that differ otherwise)")
+    p.add_argument("--evals", default=None, metavar="NAME",
+                   help="read each run's evals/NAME (written by `cli eval`, e.g. dm_control-clean-200192.csv) "
+                   "instead of eval.csv")
     args = p.parse_args(argv)
     if args.falls_below is not None and not np.isfinite(args.falls_below):
         p.error(f"--falls-below needs a finite return, got {args.falls_below}")
 
     def tables() -> str:
-        curves = load_curves(args.runs, args.labels)  # checks folders and labels; reads each config.json once
+        curves = load_curves(args.runs, args.labels, args.evals)  # checks folders and labels; each config.json once
         pooled = [pool_curves(curves, args.pool)] if args.pool is not None else []
         only = args.returns_only or args.speed_only or args.commands_only
         parts = [returns_table(curves + pooled)] if args.returns_only or not only else []
