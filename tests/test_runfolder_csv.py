@@ -58,3 +58,18 @@ def test_progress_line_shows_a_dash_until_speed_and_return_are_measured():
     progress.rate, progress.last_eval = 151.4, 795.04
     assert progress.line(100_000).endswith("     151 steps/s  last eval   795.0")
     assert progress.line(100_000).startswith("[" + "#" * 15 + "." * 15 + "]")
+
+
+def test_step_progress_estimates_the_time_left_and_redraws_at_most_once_a_second(capsys):
+    from lnnmpc.train.report import StepProgress
+
+    progress = StepProgress("agent steps")
+    # 100 of 500 in 20 s: 400 more at the same pace take 80 s
+    assert progress.line(100, 500, 20.0) == "[" + "#" * 6 + "." * 24 + "] 100/500 agent steps  20 s, ~80 s left"
+    assert progress.line(500, 500, 95.0).endswith("500/500 agent steps  95 s, done")
+    progress(1, 500)
+    progress(2, 500)  # within the second: not drawn
+    progress(500, 500)  # the end is always drawn, and ends the line
+    err = capsys.readouterr().err
+    assert err.count("\r") == 2 and "1/500 agent steps" in err and "2/500" not in err
+    assert err.endswith("500/500 agent steps  0 s, done\n")

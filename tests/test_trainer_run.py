@@ -326,6 +326,8 @@ def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(refere
                   cache)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "checkpoint 2,804 on dm_control with delay2-noise0.1: return " in result.stdout and " ± " in result.stdout
+    # a live line on stderr while the episodes run, ending at the episode's last agent step
+    assert "500/500 agent steps of 2 seed(s) x 2 episodes on dm_control  " in result.stderr
     rows = _rows(reference / "evals" / "dm_control-delay2-noise0.1-2804.csv")
     assert [(int(r["seed"]), int(r["episode"])) for r in rows] == [(0, 0), (0, 1), (1, 0), (1, 1)]
     returns = np.asarray([float(r["return"]) for r in rows])

@@ -52,7 +52,8 @@ def _act_fn(agent: Any) -> Callable:
 
 
 def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: jax.Array, *, seed: int = 0,
-                 on_step: Callable[[int, int, Any, float], None] | None = None) -> np.ndarray:
+                 on_step: Callable[[int, int, Any, float], None] | None = None,
+                 progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Deterministic episodes of every seed's policy on dm_control; returns returns (seeds, episodes).
 
     Args:
@@ -62,6 +63,7 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
         every seed policy starts from the same dm_control state, drawn with ``seed + e``).
       on_step: called as ``on_step(seed_index, episode, physics, episode_return)`` after every agent step
         (e.g. to render frames).
+      progress: called as ``progress(agent_steps_done, episode_length)`` after every agent step of all episodes.
     """
     seeds = jax.tree_util.tree_leaves(agent_states)[0].shape[0]
     n = (seeds, episodes)
@@ -90,4 +92,6 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
         obs = np.stack([[flat_observation(ts, env.kept) for ts in row] for row in timesteps])
         cstate, delivered, dt = corrupt_step(cstate, flat_keys(k_obs), jnp.full(seeds * episodes, t + 1, jnp.int32),
                                              jnp.asarray(obs.reshape(seeds * episodes, -1)))
+        if progress is not None:
+            progress(t + 1, env.episode_length)
     return totals

@@ -30,6 +30,7 @@ from lnnmpc.train.compat import check_layout, state_signature
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.policy_file import POLICY_FILE, policy_step, restore_policy
+from lnnmpc.train.report import StepProgress
 from lnnmpc.train.setup import build_loop, enable_compile_cache
 from lnnmpc.train.sharding import SeedPlacement
 
@@ -155,7 +156,9 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     else:
         from lnnmpc.train.dm_backend import run_episodes
 
-        returns = run_episodes(env, policy.loop.agent, policy.agent_state, episodes, key, seed=seed)
+        unit = f"agent steps of {config.seeds} seed(s) x {episodes} episodes on dm_control"
+        returns = run_episodes(env, policy.loop.agent, policy.agent_state, episodes, key, seed=seed,
+                               progress=StepProgress(unit) if verbose else None)
     path = out or os.path.join(run, "evals", f"{backend}-{obs_tag(options)}-{step}.csv")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     if os.path.exists(path):

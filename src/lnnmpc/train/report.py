@@ -46,6 +46,33 @@ class Progress:
                 f"{number(self.rate, '.0f', 8)} steps/s  last eval {number(self.last_eval, '.1f', 7)}")
 
 
+class StepProgress:
+    """One live line on stderr for work of known length that is not training (e.g. episodes on dm_control): a bar,
+    ``done/total`` of ``unit``, the seconds so far and a linear estimate of those left. Redrawn at most every
+    ``every`` seconds and at the end, where it ends its line."""
+
+    def __init__(self, unit: str, every: float = 1.0):
+        self.unit, self.every = unit, every
+        self._start = time.perf_counter()
+        self._drawn = -float("inf")
+
+    def __call__(self, done: int, total: int) -> None:
+        now = time.perf_counter()
+        if done < total and now - self._drawn < self.every:
+            return
+        self._drawn = now
+        sys.stderr.write("\r" + self.line(done, total, now - self._start) + ("\n" if done >= total else ""))
+        sys.stderr.flush()
+
+    def line(self, done: int, total: int, elapsed: float) -> str:
+        """The line after ``done`` of ``total`` units in ``elapsed`` seconds."""
+        width = 30
+        filled = int(width * min(done / total, 1.0))
+        left = f"~{elapsed * (total - done) / done:.0f} s left" if 0 < done < total else "done"
+        return (f"[{'#' * filled}{'.' * (width - filled)}] {done:,}/{total:,} {self.unit}  {elapsed:.0f} s, "
+                f"{left}")
+
+
 def eval_table(rows: list[dict]) -> list[dict]:
     """Per evaluation step: mean and std of the return over seeds (of each seed's episode mean; over episodes
     when there is one seed), min/max over all episodes, the number of seeds and ``per_seed`` ({seed: mean})."""

@@ -150,6 +150,7 @@ def _play(policy, env, state, episodes, episode_seed, width, height, camera, sen
     """Plays the episodes on dm_control, sending each agent step's overlaid frame as ``send(episode, frame)``;
     returns the returns (1, episodes)."""
     from lnnmpc.train.dm_backend import run_episodes
+    from lnnmpc.train.report import StepProgress
 
     steps = [0] * episodes
     config = policy.config
@@ -162,7 +163,7 @@ def _play(policy, env, state, episodes, episode_seed, width, height, camera, sen
         send(episode, overlay(frame, lines))
 
     return run_episodes(env, policy.loop.agent, state, episodes, jax.random.key(episode_seed), seed=episode_seed,
-                        on_step=on_step)
+                        on_step=on_step, progress=StepProgress(f"agent steps of {episodes} film(s)"))
 
 
 def record(run: str, *, out: str | None = None, obs: str | dict | None = None, checkpoint: int | None = None,
