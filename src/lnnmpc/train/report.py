@@ -18,6 +18,12 @@ from lnnmpc.train.checkpoint import all_steps
 from lnnmpc.train.references import references
 
 
+def bar(fraction: float, width: int = 30) -> str:
+    """A text progress bar ``[###...]`` of ``width`` cells, ``fraction`` of them (at most all) filled."""
+    filled = int(width * min(fraction, 1.0))
+    return f"[{'#' * filled}{'.' * (width - filled)}]"
+
+
 class Progress:
     """One live line on stderr: a bar, environment steps (per seed), the speed over the last chunk (environment
     steps per second per seed; evaluation and checkpoint time included, compilation only on the first chunks)
@@ -39,10 +45,8 @@ class Progress:
     def line(self, done: int) -> str:
         """The progress line after ``done`` environment steps per seed ("—" for a speed or evaluation not yet
         measured, e.g. during the random seed phase)."""
-        width = 30
-        filled = int(width * min(done / self.total, 1.0))
         number = lambda x, fmt, pad: f"{'—':>{pad}}" if np.isnan(x) else f"{x:{pad}{fmt}}"
-        return (f"[{'#' * filled}{'.' * (width - filled)}] {done:>9,}/{self.total:,} env steps  "
+        return (f"{bar(done / self.total)} {done:>9,}/{self.total:,} env steps  "
                 f"{number(self.rate, '.0f', 8)} steps/s  last eval {number(self.last_eval, '.1f', 7)}")
 
 
@@ -66,11 +70,8 @@ class StepProgress:
 
     def line(self, done: int, total: int, elapsed: float) -> str:
         """The line after ``done`` of ``total`` units in ``elapsed`` seconds."""
-        width = 30
-        filled = int(width * min(done / total, 1.0))
         left = f"~{elapsed * (total - done) / done:.0f} s left" if 0 < done < total else "done"
-        return (f"[{'#' * filled}{'.' * (width - filled)}] {done:,}/{total:,} {self.unit}  {elapsed:.0f} s, "
-                f"{left}")
+        return f"{bar(done / total)} {done:,}/{total:,} {self.unit}  {elapsed:.0f} s, {left}"
 
 
 def eval_table(rows: list[dict]) -> list[dict]:
