@@ -32,15 +32,16 @@ def _exported(agent_state: Any) -> dict:
     return {name: getattr(agent_state, name) for name in EXPORTED}
 
 
-def _paths_and_leaves(tree: Any) -> tuple[list[str], list[Any]]:
-    flat, _ = jax.tree_util.tree_flatten_with_path(tree)
-    return [jax.tree_util.keystr(path) for path, _ in flat], [leaf for _, leaf in flat]
+def _paths_and_leaves(tree: Any) -> tuple[list[str], list[Any], Any]:
+    """Each leaf's key path (as text), the leaves and the tree's structure."""
+    flat, treedef = jax.tree_util.tree_flatten_with_path(tree)
+    return [jax.tree_util.keystr(path) for path, _ in flat], [leaf for _, leaf in flat], treedef
 
 
 def save_policy(run: str, step: int, agent_state: Any) -> str:
     """Writes ``agent_state``'s ``params``, ``scale`` and ``updates`` (seed-batched) as ``<run>/policy.npz`` at
     environment step ``step`` (replacing the previous file atomically); returns its path."""
-    paths, leaves = _paths_and_leaves(_exported(agent_state))
+    paths, leaves, _ = _paths_and_leaves(_exported(agent_state))
     arrays = {f"leaf_{i}": np.asarray(leaf) for i, leaf in enumerate(leaves)}
     path = os.path.join(run, POLICY_FILE)
     temporary = f"{path}.tmp-{os.getpid()}"
@@ -66,7 +67,7 @@ def restore_policy(run: str, like: Any) -> Any:
     path = os.path.join(run, POLICY_FILE)
     if not os.path.isfile(path):
         raise ConfigError(f"{run!r} has no {POLICY_FILE}")
-    like_paths, like_leaves = _paths_and_leaves(_exported(like))
+    like_paths, like_leaves, treedef = _paths_and_leaves(_exported(like))
     with np.load(path) as archive:
         paths = [str(p) for p in archive["paths"]]
         if paths != like_paths:
@@ -80,5 +81,4 @@ def restore_policy(run: str, like: Any) -> Any:
                 raise ConfigError(f"{path}: {name} is {got.dtype}{list(got.shape)}, the run's agent has "
                                   f"{want.dtype}{list(want.shape)}")
             leaves.append(jax.device_put(got, want.sharding) if isinstance(want, jax.Array) else got)
-    _, treedef = jax.tree_util.tree_flatten(_exported(like))
     return dataclasses.replace(like, **jax.tree_util.tree_unflatten(treedef, leaves))
