@@ -99,7 +99,6 @@ def record_episodes(run: str, *, episodes: int, below: float | None = None, out:
     ends below ``below`` (all with None): the falls of a walker among many episodes. Returns {episode: (return,
     path)} of the films kept."""
     require_int("episodes", episodes, 1)
-    os.environ.setdefault("MUJOCO_GL", "egl")  # only effective before dm_control is first imported
     policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
     folder = out or os.path.join(run, "videos", str(policy.checkpoint))
     if os.path.splitext(folder)[1].lower().lstrip(".") in FORMATS:
@@ -131,7 +130,9 @@ def keep_films(returns: np.ndarray, paths: list[str], below: float | None) -> di
 
 def _policy_and_env(run, obs, checkpoint, seed_index, max_steps):
     """The run's policy, its evaluation environment (``obs`` or the run's corruptions, cut at ``max_steps``) and
-    seed ``seed_index``'s agent state (a seed axis of one)."""
+    seed ``seed_index``'s agent state (a seed axis of one). Sets MUJOCO_GL=egl unless set: offscreen rendering,
+    only effective before dm_control is first imported (it is, on the first dm_control episode)."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
     from lnnmpc import envs
 
     policy = load_policy(run, checkpoint)
@@ -173,7 +174,6 @@ def record(run: str, *, out: str | None = None, obs: str | dict | None = None, c
 
     ``out`` defaults to ``<run>/videos/<checkpoint>.mp4``. ``max_steps`` cuts the episode (agent steps).
     """
-    os.environ.setdefault("MUJOCO_GL", "egl")  # only effective before dm_control is first imported
     policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
     frames = []
     returns = _play(policy, env, state, 1, episode_seed, width, height, camera,
