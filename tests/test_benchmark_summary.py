@@ -8,7 +8,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 import summarize  # noqa: E402
 
-WALKER_DEFAULTS = ["input_transform=symlog", "lambda_=0", "rollout_steps=3", "rollout_stride=3"]
+WALKER_DEFAULTS = ["input_transform=symlog", "lambda_=0", "rollout_steps=3", "rollout_stride=3", "horizon=16",
+                   "plan_horizon=3", "learn_episode_starts=true", "latent_head=simnorm", "latent_size=256"]
+HEAD = "no latent_head=simnorm; no latent_size=256"
 
 
 def payload(overrides, flags="", precision="default", benchmark="train_throughput", results=None):
@@ -23,14 +25,22 @@ def test_setting_hides_only_the_agents_own_task_defaults():
     assert summarize._setting(walker, "walker-run", "cfc-zp-det") == " (scan_unroll=4)"
     # the same overrides are no defaults on cartpole, nor for tdmpc2 on walker
     assert summarize._setting(walker, "cartpole-swingup", "cfc-zp-det") == (
-        " (input_transform=symlog; lambda_=0; rollout_steps=3; rollout_stride=3; scan_unroll=4)")
+        f" ({'; '.join(WALKER_DEFAULTS)}; scan_unroll=4)")
     assert "lambda_=0" in summarize._setting(walker, "walker-run", "tdmpc2")
+    # the SimNorm head is a *-zp-det default only: for an OP agent it is a change
+    assert summarize._setting(walker, "walker-run", "cfc-op-det") == (
+        " (latent_head=simnorm; latent_size=256; scan_unroll=4)")
     # a walker default set to another value is a change
-    assert summarize._setting(payload([*WALKER_DEFAULTS[:3], "lambda_=0.95"][1:]), "walker-run", "cfc-zp-det") == (
+    assert summarize._setting(payload([*WALKER_DEFAULTS[:3], "lambda_=0.95", *WALKER_DEFAULTS[4:]][1:]),
+                              "walker-run", "cfc-zp-det") == (
         " (lambda_=0.95; no input_transform=symlog; no rollout_stride=3)")
     # a record made before a default existed ran without it (the benchmarks apply --set only), and says so
     before_stride = payload(WALKER_DEFAULTS[:3])
-    assert summarize._setting(before_stride, "walker-run", "cfc-zp-det") == " (no rollout_stride=3)"
+    assert summarize._setting(before_stride, "walker-run", "cfc-zp-det") == (
+        " (no rollout_stride=3; no horizon=16; no plan_horizon=3; no learn_episode_starts=True; " + HEAD + ")")
+    before_head = payload(WALKER_DEFAULTS[:7])
+    assert summarize._setting(before_head, "walker-run", "cfc-zp-det") == f" ({HEAD})"
+    assert summarize._setting(before_head, "walker-run", "ltc-zp-stoch") == ""
     assert summarize._setting(payload([]), "walker-run", "tdmpc2") == ""
     both = payload(WALKER_DEFAULTS, flags="--xla_gpu_enable_command_buffer=", precision="bfloat16")
     assert summarize._setting(both, "walker-run", "cfc-zp-det") == (

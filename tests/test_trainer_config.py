@@ -310,16 +310,24 @@ def test_new_walker_runs_of_lnn_agents_record_the_walker_defaults(tmp_path):
     folder's recorded overrides hold when the same command is run again."""
     walker = {"task": "walker-run", "small": True}
     setup = validate(TrainConfig(**walker, agent="cfc-zp-det", out=str(tmp_path / "a")))
-    assert setup.config.overrides == {"input_transform": "symlog", "lambda_": 0.0, "rollout_steps": 3,
-                                      "rollout_stride": 3}
+    every_lnn = {"input_transform": "symlog", "lambda_": 0.0, "rollout_steps": 3, "rollout_stride": 3,
+                 "horizon": 16, "plan_horizon": 3, "learn_episode_starts": True}
+    assert setup.config.overrides == {**every_lnn, "latent_head": "simnorm", "latent_size": 256}
     assert setup.loop.agent.config.model.input_transform == "symlog"
     agent = setup.loop.agent.config
-    assert (agent.lambda_, agent.rollout_steps, agent.rollout_stride) == (0.0, 3, 3)
+    assert (agent.lambda_, agent.rollout_steps, agent.rollout_stride, agent.horizon, agent.planner.horizon,
+            agent.learn_episode_starts) == (0.0, 3, 3, 16, 3, True)
+    assert (agent.model.latent_head, agent.model.latent_dim) == ("simnorm", 256)
     mine = validate(TrainConfig(**walker, agent="ltc-op-det", overrides={"input_transform": "none", "lambda_": 0.5},
                                 out=str(tmp_path / "b")))
-    assert mine.config.overrides == {"input_transform": "none", "lambda_": 0.5, "rollout_steps": 3,
-                                     "rollout_stride": 3}
-    assert mine.loop.agent.config.lambda_ == 0.5
+    # the SimNorm head is a *-zp-det default only: an OP agent cannot carry it
+    assert mine.config.overrides == {**every_lnn, "input_transform": "none", "lambda_": 0.5}
+    assert (mine.loop.agent.config.lambda_, mine.loop.agent.config.model.latent_head) == (0.5, "none")
+    # setting the head takes its width default with it (latent_size is refused without the head)
+    headless = validate(TrainConfig(**walker, agent="ltc-zp-det", overrides={"latent_head": "none"},
+                                    out=str(tmp_path / "e")))
+    assert headless.config.overrides == {**every_lnn, "latent_head": "none"}
+    assert headless.loop.agent.config.model.latent_dim == headless.loop.agent.config.model.hidden_size
     assert validate(TrainConfig(**walker, agent="tdmpc2", out=str(tmp_path / "c"))).config.overrides == {}
     cartpole = validate(TrainConfig(task="cartpole-swingup", small=True, agent="cfc-op-det", out=str(tmp_path / "d")))
     assert cartpole.loop.agent.config.model.input_transform == "none"
@@ -338,6 +346,22 @@ def test_new_walker_runs_of_lnn_agents_record_the_walker_defaults(tmp_path):
                                                  overrides={"input_transform": "symlog"}), {})
     rerun = validate(TrainConfig(**walker, agent="cfc-zp-det", out=recorded))
     assert rerun.config.overrides == {"input_transform": "symlog"}
+
+
+def test_the_readme_command_for_the_thesis_walker_agent_undoes_every_walker_default():
+    """README: `--set input_transform=none ... --set latent_head=none` on walker gives each LNN agent exactly the
+    configuration it has on a domain without task defaults (the thesis's), so no walker default is left out of
+    that list."""
+    from lnnmpc.agents.registry import LNN_AGENTS, make_agent, task_default_overrides
+
+    thesis = parse_overrides(["input_transform=none", "lambda_=0.95", "rollout_steps=1", "rollout_stride=1",
+                              "horizon=32", "plan_horizon=10", "learn_episode_starts=false", "latent_head=none"])
+    for name in LNN_AGENTS:
+        walker = make_agent(name, 24, 6, overrides=task_default_overrides(name, "walker-run", thesis)).config
+        plain = make_agent(name, 24, 6, overrides=task_default_overrides(name, "cartpole-swingup")).config
+        assert walker == plain, name
+        defaults = make_agent(name, 24, 6, overrides=task_default_overrides(name, "walker-run")).config
+        assert defaults != plain and defaults.model.input_transform == "symlog"
 
 
 def test_a_run_folder_trains_in_one_process_at_a_time(tmp_path):

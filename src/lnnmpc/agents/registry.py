@@ -55,17 +55,34 @@ SMALL_LNN_TRAINING = {"horizon": 8, "burn_in": 4}
 # experiments/results/cfc-walker-ablations-h100-60k. Starting the deeper rollouts from every third window
 # position only (rollout_stride=3) cuts the 4-seed walker update from 16.26 to 11.83 ms (H100) and learned as
 # well: 690.3 at 228,576 steps against 671.6 at 204,640 (3 seeds;
-# experiments/results/cfc-zp-det-walker-run-stride3-h100-3seeds-200k). Measured on walker only, so other
-# domains keep the thesis's.
+# experiments/results/cfc-zp-det-walker-run-stride3-h100-3seeds-200k). Windows of 16 learning steps, planning
+# over 3, learning the episodes' first steps and, for the agents that can carry it (*-zp-det), a 256-wide SimNorm
+# latent head: 755.1 at 200,192 steps over 4 seeds (one per H200; the defaults before them: 690.3 at 228,576, 3
+# seeds), 638.2 under observation noise 0.1 (2 seeds; the defaults before them: 558.8):
+# experiments/results/cfc-walker-simnorm-latent256-starts-200k-h200 and
+# experiments/results/cfc-walker-noise0.1-simnorm-latent256-starts-200k-h200. Measured on walker with cfc-zp-det
+# only, so other domains keep the thesis's.
 LNN_TASK_DEFAULTS = {"walker": {"input_transform": "symlog", "lambda_": 0.0, "rollout_steps": 3,
-                                "rollout_stride": 3}}
+                                "rollout_stride": 3, "horizon": 16, "plan_horizon": 3,
+                                "learn_episode_starts": True}}
+# Task defaults of the self-predictive deterministic LNN agents (*-zp-det) on top of LNN_TASK_DEFAULTS: the
+# SimNorm latent head needs such an agent (lnn_model.LNNModelConfig).
+ZP_DET_TASK_DEFAULTS = {"walker": {"latent_head": "simnorm", "latent_size": 256}}
 
 
 def task_default_overrides(name: str, task: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
-    """``overrides`` completed with the defaults of :data:`LNN_TASK_DEFAULTS` for agent ``name`` on ``task``
-    (``"walker-run"``: domain ``walker``); what ``overrides`` sets wins. Unchanged for ``tdmpc2``."""
-    defaults = LNN_TASK_DEFAULTS.get(task.split("-")[0], {}) if name in LNN_AGENTS else {}
-    return {**defaults, **(overrides or {})}
+    """``overrides`` completed with the defaults of :data:`LNN_TASK_DEFAULTS` (and, for a ``*-zp-det`` agent,
+    :data:`ZP_DET_TASK_DEFAULTS`) for agent ``name`` on ``task`` (``"walker-run"``: domain ``walker``); what
+    ``overrides`` sets wins, and a ``latent_head`` it sets takes the head's defaults (``latent_size``) with it.
+    Unchanged for ``tdmpc2``."""
+    overrides = dict(overrides or {})
+    if name not in LNN_AGENTS:
+        return overrides
+    domain = task.split("-")[0]
+    defaults = dict(LNN_TASK_DEFAULTS.get(domain, {}))
+    if name.endswith("-zp-det") and "latent_head" not in overrides:
+        defaults.update(ZP_DET_TASK_DEFAULTS.get(domain, {}))
+    return {**defaults, **overrides}
 
 
 def acting_latent(agent, state, carry, obs):
