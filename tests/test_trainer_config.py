@@ -420,21 +420,3 @@ def test_a_committed_run_from_before_the_newest_agent_fields_reads_as_the_same_c
     assert agent_config_changes(saved["agent_config"], agent_config_json(new), new.inactive_fields()) == [
         ("learn_episode_starts", False, True)]
 
-
-
-def test_make_train_steps_as_many_environments_per_seed_as_the_measured_lines():
-    """`make train` defaults ENVS to the measured lines' (walker 16, the other domains 8); ENVS= still wins.
-    (`make -n` prints the command without running it.)"""
-    import pathlib
-    import subprocess
-
-    root = pathlib.Path(__file__).resolve().parents[1]
-
-    def envs(*args):
-        out = subprocess.run(["make", "-n", "-s", "train", *args], cwd=root, capture_output=True, text=True,
-                             check=True).stdout
-        return out.split("--envs ")[1].split()[0]
-
-    assert envs("TASK=walker-run") == "16" and envs("TASK=walker-walk") == "16"
-    assert envs("TASK=cartpole-swingup") == "8" and envs("TASK=acrobot-swingup") == "8"
-    assert envs("TASK=walker-run", "ENVS=2") == "2"
