@@ -86,7 +86,8 @@ def _video_parser(sub) -> None:
     p.add_argument("--obs", default=None, help="corruptions (default: the run's evaluation corruptions)")
     p.add_argument("--checkpoint", type=int, default=None)
     p.add_argument("--seed-index", type=int, default=0, help="which trained seed's policy")
-    p.add_argument("--episode-seed", type=int, default=0)
+    p.add_argument("--episode-seed", type=int, default=0,
+                   help="episode e is the one `eval --backend dm_control --seed EPISODE_SEED` scores as e")
     p.add_argument("--width", type=int, default=320)
     p.add_argument("--height", type=int, default=240)
     p.add_argument("--max-steps", type=int, default=None, help="cut the episode after this many agent steps")

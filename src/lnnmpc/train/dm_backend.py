@@ -51,7 +51,23 @@ def _act_fn(agent: Any) -> Callable:
     return jax.jit(jax.vmap(per_seed))
 
 
+def episode_keys(key: jax.Array, seed_ids, episodes: int) -> jax.Array:
+    """One key per (seed, episode), (len(seed_ids) * episodes,) seed-major: ``fold_in(fold_in(key, seed id),
+    episode)``, so an episode's randomness does not depend on how many episodes or seeds play beside it."""
+    per_seed = lambda s: jax.vmap(lambda e: jax.random.fold_in(jax.random.fold_in(key, s), e))(  # noqa: E731
+        jnp.arange(episodes))
+    return jax.vmap(per_seed)(jnp.asarray(seed_ids, jnp.int32)).reshape(-1)
+
+
+@jax.jit
+def _split_each(keys: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Each of the (N,) keys split in three: three (N,) key arrays."""
+    split = jax.vmap(lambda k: jax.random.split(k, 3))(keys)
+    return split[:, 0], split[:, 1], split[:, 2]
+
+
 def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: jax.Array, *, seed: int = 0,
+                 seed_ids: list[int] | None = None,
                  on_step: Callable[[int, int, Any, float], None] | None = None,
                  progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Deterministic episodes of every seed's policy on dm_control; returns returns (seeds, episodes).
@@ -59,28 +75,33 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
     Args:
       env: the lnnmpc environment whose task, action repeat and corruptions to reproduce.
       agent, agent_states: the agent and its state with a leading seed axis.
-      key: randomness of the planner and the corruptions. seed: dm_control's initial-state seed (episode e of
-        every seed policy starts from the same dm_control state, drawn with ``seed + e``).
+      key: randomness of the planner and the corruptions, one stream per episode (:func:`episode_keys`).
+        seed: dm_control's initial-state seed (episode e of every seed policy starts from the same dm_control
+        state, drawn with ``seed + e``).
+      seed_ids: the run's seed index of each row of ``agent_states`` (default 0, 1, ...): a policy sliced out of a
+        run (``make video``) plays episode e as its seed played it among all seeds (``make eval``).
       on_step: called as ``on_step(seed_index, episode, physics, episode_return)`` after every agent step
         (e.g. to render frames).
       progress: called as ``progress(agent_steps_done, episode_length)`` after every agent step of all episodes.
     """
     seeds = jax.tree_util.tree_leaves(agent_states)[0].shape[0]
+    seed_ids = list(range(seeds)) if seed_ids is None else list(seed_ids)
+    if len(seed_ids) != seeds:
+        raise ValueError(f"seed_ids has {len(seed_ids)} entries for {seeds} seed(s) of agent states")
     n = (seeds, episodes)
     sims = [[load_dm_control(env, seed + e) for e in range(episodes)] for _ in range(seeds)]
     timesteps = [[sim.reset() for sim in row] for row in sims]
     obs = np.stack([[flat_observation(ts, env.kept) for ts in row] for row in timesteps])
-    k_corrupt, k_act = jax.random.split(key)
+    k_corrupt, k_act, _ = _split_each(episode_keys(key, seed_ids, episodes))
     corrupt_reset, corrupt_step = _corruption_fns(env)
-    flat_keys = lambda k: jax.random.split(k, seeds * episodes)
-    cstate, delivered, dt = corrupt_reset(flat_keys(k_corrupt), jnp.asarray(obs.reshape(seeds * episodes, -1)))
+    cstate, delivered, dt = corrupt_reset(k_corrupt, jnp.asarray(obs.reshape(seeds * episodes, -1)))
     carry = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (*n, *jnp.shape(x))), agent.initial_carry())
     act = _act_fn(agent)
     totals = np.zeros(n)
     for t in range(env.episode_length):
-        k_act, k_step, k_obs = jax.random.split(k_act, 3)
-        action, carry = act(agent_states, carry, delivered.reshape(*n, -1), dt.reshape(n),
-                            flat_keys(k_step).reshape(n), jnp.full(n, t == 0))
+        k_act, k_step, k_obs = _split_each(k_act)
+        action, carry = act(agent_states, carry, delivered.reshape(*n, -1), dt.reshape(n), k_step.reshape(n),
+                            jnp.full(n, t == 0))
         action = np.asarray(action, dtype=np.float64)
         for s in range(seeds):
             for e in range(episodes):
@@ -90,7 +111,7 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
                 if on_step is not None:
                     on_step(s, e, sims[s][e].physics, totals[s, e])
         obs = np.stack([[flat_observation(ts, env.kept) for ts in row] for row in timesteps])
-        cstate, delivered, dt = corrupt_step(cstate, flat_keys(k_obs), jnp.full(seeds * episodes, t + 1, jnp.int32),
+        cstate, delivered, dt = corrupt_step(cstate, k_obs, jnp.full(seeds * episodes, t + 1, jnp.int32),
                                              jnp.asarray(obs.reshape(seeds * episodes, -1)))
         if progress is not None:
             progress(t + 1, env.episode_length)

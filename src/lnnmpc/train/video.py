@@ -106,7 +106,7 @@ def record_episodes(run: str, *, episodes: int, below: float | None = None, out:
                           f"file {folder!r}")
     writers = _EpisodeWriters(folder, episodes, _fps(env))
     try:
-        returns = _play(policy, env, state, episodes, episode_seed, width, height, camera, writers.send)
+        returns = _play(policy, env, state, seed_index, episodes, episode_seed, width, height, camera, writers.send)
     finally:
         writers.close()
     kept = keep_films(returns[0], writers.paths, below)
@@ -147,9 +147,10 @@ def _policy_and_env(run, obs, checkpoint, seed_index, max_steps):
     return policy, env, jax.tree_util.tree_map(lambda x: x[seed_index:seed_index + 1], policy.agent_state)
 
 
-def _play(policy, env, state, episodes, episode_seed, width, height, camera, send) -> np.ndarray:
+def _play(policy, env, state, seed_index, episodes, episode_seed, width, height, camera, send) -> np.ndarray:
     """Plays the episodes on dm_control, sending each agent step's overlaid frame as ``send(episode, frame)``;
-    returns the returns (1, episodes)."""
+    returns the returns (1, episodes). Episode e is the one ``evaluate(run, backend="dm_control",
+    seed=episode_seed)`` scores for seed ``seed_index`` as episode e (:func:`dm_backend.episode_keys`)."""
     from lnnmpc.train.dm_backend import run_episodes
     from lnnmpc.train.report import StepProgress
 
@@ -164,7 +165,8 @@ def _play(policy, env, state, episodes, episode_seed, width, height, camera, sen
         send(episode, overlay(frame, lines))
 
     return run_episodes(env, policy.loop.agent, state, episodes, jax.random.key(episode_seed), seed=episode_seed,
-                        on_step=on_step, progress=StepProgress(f"agent steps of {episodes} film(s)"))
+                        seed_ids=[seed_index], on_step=on_step,
+                        progress=StepProgress(f"agent steps of {episodes} film(s)"))
 
 
 def record(run: str, *, out: str | None = None, obs: str | dict | None = None, checkpoint: int | None = None,
@@ -176,7 +178,7 @@ def record(run: str, *, out: str | None = None, obs: str | dict | None = None, c
     """
     policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
     frames = []
-    returns = _play(policy, env, state, 1, episode_seed, width, height, camera,
+    returns = _play(policy, env, state, seed_index, 1, episode_seed, width, height, camera,
                     lambda _, frame: frames.append(frame))
     fps = _fps(env)
     path = encode(frames, out or os.path.join(run, "videos", f"{policy.checkpoint}.mp4"), fps)
