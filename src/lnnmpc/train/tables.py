@@ -89,9 +89,9 @@ def falls_table(curves: list[dict], threshold: float) -> str:
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for curve in curves:
         steps = sorted({int(r["env_step"]) for r in curve["rows"]})
-        returns = step_returns(curve["rows"], steps[-1])
+        last = [step_returns(curve["rows"], step) for step in steps[-LAST_EVALUATIONS:]]
+        returns, recent = last[-1], np.concatenate(last)
         others = returns[returns >= threshold]
-        recent = np.concatenate([step_returns(curve["rows"], step) for step in steps[-LAST_EVALUATIONS:]])
         lines.append(f"| {curve['label']} | {steps[-1]:,} | {returns.size} | {returns.size - others.size} | "
                      f"{int((recent < threshold).sum())} of {recent.size} | "
                      f"{returns.mean():.1f} | {f'{others.mean():.1f}' if others.size else ''} | "
