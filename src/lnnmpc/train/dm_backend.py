@@ -68,7 +68,7 @@ def _split_each(keys: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
 
 def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: jax.Array, *, seed: int = 0,
                  seed_ids: list[int] | None = None,
-                 on_step: Callable[[int, int, Any, float], None] | None = None,
+                 on_step: Callable[[int, int, int, Any, float], None] | None = None,
                  progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Deterministic episodes of every seed's policy on dm_control; returns returns (seeds, episodes).
 
@@ -80,8 +80,8 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
         state, drawn with ``seed + e``).
       seed_ids: the run's seed index of each row of ``agent_states`` (default 0, 1, ...): a policy sliced out of a
         run (``make video``) plays episode e as its seed played it among all seeds (``make eval``).
-      on_step: called as ``on_step(seed_index, episode, physics, episode_return)`` after every agent step
-        (e.g. to render frames).
+      on_step: called as ``on_step(row, episode, agent_steps_done, physics, episode_return)`` after every agent
+        step (``row`` of ``agent_states``; e.g. to render frames).
       progress: called as ``progress(agent_steps_done, episode_length)`` after every agent step of all episodes.
     """
     seeds = jax.tree_util.tree_leaves(agent_states)[0].shape[0]
@@ -109,7 +109,7 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
                     timesteps[s][e] = sims[s][e].step(action[s, e])
                     totals[s, e] += timesteps[s][e].reward or 0.0
                 if on_step is not None:
-                    on_step(s, e, sims[s][e].physics, totals[s, e])
+                    on_step(s, e, t + 1, sims[s][e].physics, totals[s, e])
         obs = np.stack([[flat_observation(ts, env.kept) for ts in row] for row in timesteps])
         cstate, delivered, dt = corrupt_step(cstate, k_obs, jnp.full(seeds * episodes, t + 1, jnp.int32),
                                              jnp.asarray(obs.reshape(seeds * episodes, -1)))

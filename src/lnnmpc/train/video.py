@@ -154,14 +154,12 @@ def _play(policy, env, state, seed_index, episodes, episode_seed, width, height,
     from lnnmpc.train.dm_backend import run_episodes
     from lnnmpc.train.report import StepProgress
 
-    steps = [0] * episodes
     config = policy.config
 
-    def on_step(_, episode, physics, total):
-        steps[episode] += 1
+    def on_step(_, episode, step, physics, total):
         frame = physics.render(height=height, width=width, camera_id=camera)
         lines = [f"{config.task} | {config.agent} | {policy.checkpoint:,} env steps",
-                 f"step {steps[episode]:3d}  return {total:6.1f}"]
+                 f"step {step:3d}  return {total:6.1f}"]
         send(episode, overlay(frame, lines))
 
     return run_episodes(env, policy.loop.agent, state, episodes, jax.random.key(episode_seed), seed=episode_seed,
