@@ -217,11 +217,13 @@ def profile_call(fn, args: tuple, calls: int, warmup: int = 2, top: int = 25, pe
     return summarize_kernels(events, calls * per_call, [w / per_call for w in wall], top, op_names=op_names)
 
 
-def programs(args) -> dict:
+def programs(args) -> tuple[dict, bool]:
     """The compiled programs to profile, each as (function, arguments, units of work per call): the agent's
     update and act step, vmapped over seeds (act also over environments), and ``--burst`` updates in one scan
-    (``TrainingLoop.update_burst``, as the training chunk runs them), on a replay filled with random steps."""
-    loop = build_loop(args.task, args.agent, args.envs, args.small, parse_overrides(args.overrides))
+    (``TrainingLoop.update_burst``, as the training chunk runs them), on a replay filled with random steps; and
+    whether the update keeps its empty-replay guard (``LoopConfig.guard_empty_replay``)."""
+    loop = build_loop(args.task, args.agent, args.envs, args.small, parse_overrides(args.overrides),
+                      fill=None if args.keep_replay_guard else args.fill)
     ts = filled_state(loop, args.seeds, args.fill)
     out = {}
     if "update" in args.what:
@@ -231,7 +233,7 @@ def programs(args) -> dict:
         out["act"] = act.lower(*act_args).compile(), act_args, 1
     if "burst" in args.what:
         out["burst"] = update_burst_program(loop).lower(ts, args.burst).compile(), (ts,), args.burst
-    return out
+    return out, loop.config.guard_empty_replay
 
 
 def main(argv=None):
@@ -248,6 +250,8 @@ def main(argv=None):
     parser.add_argument("--fill", type=int, default=600, help="random iterations to fill the replay first")
     parser.add_argument("--top", type=int, default=25, help="kernels listed per program")
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
+    parser.add_argument("--keep-replay-guard", action="store_true",
+                        help="keep the update's empty-replay guard the trainer drops after a long enough seed phase")
     parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",
                         help="agent hyperparameter override, repeatable (e.g. --set rollout_steps=3)")
     parser.add_argument("--out", default=None, help="JSON path; {device} in it becomes h100, h200, cpu, ...")
@@ -260,7 +264,8 @@ def main(argv=None):
                      f"(got {args.calls}, {args.seeds}, {args.envs}, {args.burst})")
     out = args.out or default_out(f"profile-{args.agent}-{args.task}")
     payload = {"benchmark": "profile_update", "env": environment_info(), "args": vars(args), "results": {}}
-    for name, (fn, fn_args, per_call) in programs(args).items():
+    compiled, payload["guard_empty_replay"] = programs(args)
+    for name, (fn, fn_args, per_call) in compiled.items():
         summary = profile_call(fn, fn_args, args.calls, top=args.top, per_call=per_call)
         payload["results"][name] = summary
         out = write_json(out, payload)

@@ -40,16 +40,24 @@ from common import compiled_gflop, default_out, environment_info, time_call, wri
 from lnnmpc import envs as envs_lib  # noqa: E402
 from lnnmpc.agents.registry import make_agent  # noqa: E402
 from lnnmpc.train.config import parse_overrides  # noqa: E402
-from lnnmpc.train.loop import LoopConfig, TrainingLoop  # noqa: E402
+from lnnmpc.train.loop import LoopConfig, TrainingLoop, windows_after_seed_phase  # noqa: E402
+
+REPLAY_CAPACITY = 51_000
 
 
 def build_loop(task: str, agent: str, envs: int, small: bool, overrides: dict | None = None,
-               batch_size: int = 256) -> TrainingLoop:
+               batch_size: int = 256, fill: int | None = None) -> TrainingLoop:
     """The trainer's loop with default settings (replay sized for 100K environment steps, ``batch_size``
-    sequences per update), agent ``overrides`` as ``--set`` gives them."""
+    sequences per update), agent ``overrides`` as ``--set`` gives them. ``fill``: the random iterations the
+    replay gets before the measurement; the update's guard against an empty replay
+    (``LoopConfig.guard_empty_replay``) is then on or off as the trainer sets it after a seed phase that long
+    (``None``: on, the loop's default)."""
     env = envs_lib.make(task)
     agent = make_agent(agent, env.observation_size, env.action_size, small=small, overrides=overrides or {})
-    return TrainingLoop(agent, env, env, LoopConfig(num_envs=envs, batch_size=batch_size, replay_capacity=51_000))
+    guard = fill is None or not windows_after_seed_phase(fill, env.episode_length, agent.sequence_length,
+                                                         REPLAY_CAPACITY)
+    return TrainingLoop(agent, env, env, LoopConfig(num_envs=envs, batch_size=batch_size,
+                                                    replay_capacity=REPLAY_CAPACITY, guard_empty_replay=guard))
 
 
 def filled_state(loop: TrainingLoop, seeds: int, fill: int):
@@ -125,10 +133,12 @@ def time_in_scan(loop: TrainingLoop, ts, n: int, parts: tuple[str, ...], repeats
 
 
 def measure(task: str, seeds: int, envs: int, args) -> dict:
-    loop = build_loop(task, args.agent, envs, args.small, parse_overrides(args.overrides))
+    loop = build_loop(task, args.agent, envs, args.small, parse_overrides(args.overrides),
+                      fill=None if args.keep_replay_guard else args.fill)
     ts = filled_state(loop, seeds, args.fill)
     act_dim = loop.env.action_size
-    record = {"task": task, "agent": args.agent, "seeds": seeds, "envs": envs}
+    record = {"task": task, "agent": args.agent, "seeds": seeds, "envs": envs,
+              "guard_empty_replay": loop.config.guard_empty_replay}
     if args.chunk_only:  # one compilation (the chunk's) instead of four
         record.update(time_chunk(loop, ts, seeds, envs, args.chunk, args.repeats))
         return record
@@ -199,6 +209,8 @@ def main(argv=None):
     parser.add_argument("--in-scan", type=int, default=0, metavar="N",
                         help="also time act, env step and update N at a time inside one lax.scan (0: off)")
     parser.add_argument("--small", action="store_true", help="tiny networks and planner (CPU check)")
+    parser.add_argument("--keep-replay-guard", action="store_true",
+                        help="keep the update's empty-replay guard the trainer drops after a long enough seed phase")
     parser.add_argument("--matmul-precision", choices=("default", "tensorfloat32", "bfloat16", "highest"),
                         default="default", help="jax_default_matmul_precision for every program timed")
     parser.add_argument("--set", dest="overrides", action="append", metavar="KEY=VALUE",

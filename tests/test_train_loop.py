@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -10,8 +11,8 @@ from lnnmpc import envs
 from lnnmpc.agents.mppi import MPPIConfig
 from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config
 from lnnmpc.agents.tdmpc2_model import WorldModelConfig
-from lnnmpc.replay import replay_size
-from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.replay import replay_add, replay_init, replay_num_windows, replay_size
+from lnnmpc.train.loop import LoopConfig, TrainingLoop, windows_after_seed_phase
 
 
 @pytest.fixture(scope="module")
@@ -31,9 +32,15 @@ def init(loop):
     return jax.jit(jax.vmap(loop.init))
 
 
-def test_seed_phase_fills_replay_with_whole_episodes(loop, init):
+@pytest.fixture(scope="module")
+def seeded(loop, init):
+    """2 seeds after 502 seed-phase iterations: one episode (500 steps + final obs) and the next one's first."""
     seed = jax.jit(jax.vmap(loop.seed_chunk, in_axes=(0, None)), static_argnums=1)
-    ts, out = seed(init(jax.random.split(jax.random.key(0), 2)), 502)  # one episode (500 steps + final obs) + 1
+    return seed(init(jax.random.split(jax.random.key(0), 2)), 502)
+
+
+def test_seed_phase_fills_replay_with_whole_episodes(seeded):
+    ts, out = seeded
     assert np.asarray(replay_size(ts.replay)).tolist() == [502, 502]
     returns = np.asarray(out["episode_return"])  # (seeds, iterations, envs), NaN except where an episode ended
     ended = ~np.isnan(returns)
@@ -57,6 +64,83 @@ def test_checkpoint_round_trip_of_a_train_state(init, tmp_path):
     restored, host = restore_checkpoint(str(tmp_path), 7, like)
     assert host == {"env_steps": 7}
     for a, b in zip(jax.tree_util.tree_leaves(ts), jax.tree_util.tree_leaves(restored), strict=True):
+        if jax.numpy.issubdtype(a.dtype, jax.dtypes.prng_key):
+            a, b = jax.random.key_data(a), jax.random.key_data(b)
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def _windows_per_iteration(episode_records: int, length: int, lead: int, capacity: int, iterations: int):
+    """(iterations,) valid windows of one stream after each iteration of the loop's schedule (one record per
+    iteration, an episode of ``episode_records`` records), counted by the replay buffer itself."""
+    state = replay_init({"x": jnp.zeros(())}, capacity, 1)
+
+    def body(state, i):
+        state = replay_add(state, {"x": jnp.ones((1,))}, (i % episode_records == 0)[None])
+        return state, replay_num_windows(state, length, lead)
+
+    return np.asarray(jax.lax.scan(body, state, jnp.arange(iterations))[1])
+
+
+def test_windows_after_seed_phase_is_what_the_buffer_holds_ever_after():
+    """Where :func:`windows_after_seed_phase` says yes, the buffer holds a valid window from that iteration on,
+    through the ring's overwrites; one iteration short of the window it holds none; and its capacity clause is
+    needed (a smaller ring loses every window at some episode boundary)."""
+    lost_without_capacity_clause = 0
+    for episode_length in (3, 6):
+        for length in (2, 4, 5, 7):
+            for capacity in range(length, 2 * length + 1):
+                iterations = 4 * (episode_length + 1) + 2 * capacity
+                for lead in sorted({0, length - 1}):
+                    counts = _windows_per_iteration(episode_length + 1, length, lead, capacity, iterations)
+                    assert counts[length - 2] == 0  # after length - 1 records no window can exist
+                    for n in range(1, iterations + 1):
+                        if windows_after_seed_phase(n, episode_length, length, capacity):
+                            assert (counts[n - 1:] > 0).all(), (episode_length, length, capacity, lead, n)
+                    if (lead == 0 and episode_length + 1 >= length and capacity < 2 * length - 1
+                            and (counts[length - 1:] == 0).any()):
+                        lost_without_capacity_clause += 1
+    assert lost_without_capacity_clause > 0
+
+
+def test_the_trainer_drops_the_empty_replay_guard_only_after_a_long_enough_seed_phase():
+    from lnnmpc.train.config import TrainConfig
+    from lnnmpc.train.setup import build_loop
+
+    base = dict(task="cartpole-swingup", small=True, model_size=1, envs=2)
+    assert not build_loop(TrainConfig(**base)).config.guard_empty_replay  # 5000 steps: 313 iterations
+    # 8 steps: one iteration of 2 environments, fewer records than the agent's window of H + 1
+    assert build_loop(TrainConfig(**base, seed_steps=8)).config.guard_empty_replay
+    assert build_loop(TrainConfig(**base, seed_steps=0)).config.guard_empty_replay
+
+
+def test_update_without_the_guard_leaves_it_out_and_equals_the_guarded_update(loop, seeded):
+    """Dropping the select changes no number of an update on a buffer with windows (2 updates in one scan, 2
+    seeds), and the compiled update no longer carries the ``keep_if_valid`` scope."""
+    import dataclasses
+
+    unguarded = TrainingLoop(loop.agent, loop.env, loop.eval_env,
+                             dataclasses.replace(loop.config, guard_empty_replay=False))
+    ts = seeded[0]
+    keys = jax.random.split(jax.random.key(3), 2)
+    for each, present in ((loop, True), (unguarded, False)):
+        hlo = jax.jit(jax.vmap(each._update)).lower(ts, keys).as_text(debug_info=True)
+        assert ("keep_if_valid" in hlo) is present
+    burst = lambda each: jax.jit(jax.vmap(each.update_burst, in_axes=(0, None)), static_argnums=1)(ts, 2)[0]
+    with_guard, without = burst(loop), burst(unguarded)
+    for a, b in zip(jax.tree_util.tree_leaves(with_guard.agent), jax.tree_util.tree_leaves(without.agent),
+                    strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-7)
+    moved = [not np.array_equal(np.asarray(a), np.asarray(b)) for a, b in
+             zip(jax.tree_util.tree_leaves(ts.agent), jax.tree_util.tree_leaves(without.agent), strict=True)
+             if jnp.issubdtype(a.dtype, jnp.floating)]
+    assert any(moved)  # the updates did change the agent (the buffer had windows)
+
+
+def test_guarded_update_on_an_empty_buffer_keeps_the_agent(loop, init):
+    ts = init(jax.random.split(jax.random.key(5), 2))  # nothing written yet
+    keys = jax.random.split(jax.random.key(6), 2)
+    after = jax.jit(jax.vmap(loop._update))(ts, keys)[0]
+    for a, b in zip(jax.tree_util.tree_leaves(ts.agent), jax.tree_util.tree_leaves(after.agent), strict=True):
         if jax.numpy.issubdtype(a.dtype, jax.dtypes.prng_key):
             a, b = jax.random.key_data(a), jax.random.key_data(b)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -21,7 +21,7 @@ from lnnmpc.train import runfolder, schedule
 from lnnmpc.train.checkpoint import latest_step
 from lnnmpc.train.compat import check_agent_config, check_compatible, check_layout, layout_signature, state_shapes
 from lnnmpc.train.config import ConfigError, TrainConfig
-from lnnmpc.train.loop import LoopConfig, TrainingLoop
+from lnnmpc.train.loop import LoopConfig, TrainingLoop, windows_after_seed_phase
 from lnnmpc.train.provenance import mark_startup
 from lnnmpc.train.sharding import device_count_for
 
@@ -87,9 +87,12 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
         replay_capacity_for(config.steps, env.action_repeat, config.envs) + 2 * (env.episode_length + 1))
     if capacity < agent.sequence_length + 1:
         raise ConfigError(f"replay_capacity={capacity} is below the training window ({agent.sequence_length})")
+    seed_iterations = math.ceil(config.seed_steps / (config.envs * env.action_repeat))
+    guard = not windows_after_seed_phase(seed_iterations, env.episode_length, agent.sequence_length, capacity)
     return TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=config.envs, batch_size=config.batch_size,
                                                          replay_capacity=capacity,
-                                                         eval_episodes=config.eval_episodes))
+                                                         eval_episodes=config.eval_episodes,
+                                                         guard_empty_replay=guard))
 
 
 def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None,
