@@ -154,3 +154,44 @@ def test_simnorm_outputs_follow_a_layer_norm_and_kernels_are_normal_002(layer_no
     assert same == layer_norm  # with it: equal up to the LayerNorm's epsilon (~3e-4); without: ~0.4 apart
     kernel = np.asarray(variables["params"]["dynamics"]["Dense_1"]["kernel"])  # 64 x 64 draws
     assert abs(kernel.std() - 0.02) < 0.002 and np.abs(kernel).max() > 2.2 * 0.02
+
+
+def test_an_mlp_reading_a_tuple_is_the_mlp_of_its_concatenation():
+    """The first layer reads (z, a) without concatenating them: the same parameter names, shapes and initial
+    values as the MLP of concatenate([z, a]) under the same key, and the same outputs (float32 rounding apart),
+    with a dropout layer and SimNorm output as well."""
+    from lnnmpc.agents.tdmpc2_model import MLP
+
+    mlp = MLP((24, 24), 16, simnorm_dim=8, dropout=0.1, output_layer_norm=True)
+    rng = np.random.default_rng(2)
+    z, a = rng.normal(size=(3, 5, 12)).astype(np.float32), rng.normal(size=(3, 5, 2)).astype(np.float32)
+    joined = np.concatenate([z, a], axis=-1)
+    split_params = mlp.init(jax.random.key(5), (z, a))
+    joined_params = mlp.init(jax.random.key(5), joined)
+    assert jax.tree_util.tree_structure(split_params) == jax.tree_util.tree_structure(joined_params)
+    for x, y in zip(jax.tree_util.tree_leaves(split_params), jax.tree_util.tree_leaves(joined_params), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    # random parameters (the zero biases would hide a wrong bias path)
+    params = jax.tree_util.tree_map(lambda p: jnp.asarray(rng.normal(0, 0.3, p.shape), p.dtype), joined_params)
+    np.testing.assert_allclose(np.asarray(mlp.apply(params, (z, a))), np.asarray(mlp.apply(params, joined)),
+                               rtol=1e-5, atol=1e-6)
+    rngs = {"dropout": jax.random.key(6)}
+    np.testing.assert_allclose(np.asarray(mlp.apply(params, (z, a), False, rngs=rngs)),
+                               np.asarray(mlp.apply(params, joined, False, rngs=rngs)), rtol=1e-5, atol=1e-6)
+    grads = [jax.grad(lambda p, x: mlp.apply(p, x).sum())(params, x) for x in ((z, a), joined)]
+    for x, y in zip(*map(jax.tree_util.tree_leaves, grads), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-5)
+
+
+def test_the_world_model_keeps_its_parameter_names():
+    """Checkpoints and policy files of earlier runs load: every component's layers keep nn.Dense's names."""
+    config = WorldModelConfig.from_size(5, 1, 1, enc_dim=32, mlp_dim=32, latent_dim=16, num_q=2)
+    params = init_world_model(config, jax.random.key(0))[1]["params"]
+    normed = ["LayerNorm_2"] if config.simnorm_layer_norm else []  # the SimNorm outputs' LayerNorm
+    expected = {"encoder": ["Dense_0", "Dense_1", "LayerNorm_0"] + (["LayerNorm_1"] if normed else []),
+                "dynamics": ["Dense_0", "Dense_1", "Dense_2", "LayerNorm_0", "LayerNorm_1", *normed]}
+    expected |= {head: ["Dense_0", "Dense_1", "Dense_2", "LayerNorm_0", "LayerNorm_1"]
+                 for head in ("reward_head", "policy_head", "q_heads")}
+    assert {part: sorted(layers) for part, layers in params.items()} == expected
+    assert params["dynamics"]["Dense_0"]["kernel"].shape == (16 + 1, 32)
+    assert params["q_heads"]["Dense_0"]["kernel"].shape == (2, 16 + 1, 32)

@@ -187,7 +187,7 @@ class LNNWorldModel(WorldModel):
 
     def predict(self, z: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array | None]:
         """(z (..., N), a (..., A)) -> (prediction or mean (..., D), σ (..., D) or None when deterministic)."""
-        out = self.predictor(jnp.concatenate([z, action], axis=-1))
+        out = self.predictor((z, action))
         if not self.config.stochastic:
             return out, None
         return gaussian_params(out, self.config.min_sigma, self.config.max_sigma)
