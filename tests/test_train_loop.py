@@ -144,3 +144,21 @@ def test_guarded_update_on_an_empty_buffer_keeps_the_agent(loop, init):
         if jax.numpy.issubdtype(a.dtype, jax.dtypes.prng_key):
             a, b = jax.random.key_data(a), jax.random.key_data(b)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_more_evaluation_episodes_with_the_same_key_extend_the_set(loop, seeded):
+    """Episode i of an evaluation depends on the key and i alone: 3 episodes are 2 episodes' returns plus one,
+    and another key gives other episodes (episodes cut to 10 agent steps: the programs compile faster)."""
+    import dataclasses
+
+    from lnn_helpers import quick_jit
+
+    short = dataclasses.replace(loop.env, spec=dataclasses.replace(loop.env.spec, control_steps=10))
+    agent = jax.tree_util.tree_map(lambda x: x[0], seeded[0].agent)  # seed 0's agent (untrained: any policy will do)
+    evaluate = {n: quick_jit(TrainingLoop(loop.agent, loop.env, short,
+                                          dataclasses.replace(loop.config, eval_episodes=n)).evaluate) for n in (2, 3)}
+    key = jax.random.key(11)
+    two, three = (np.asarray(evaluate[n](agent, key)) for n in (2, 3))
+    np.testing.assert_allclose(three[:2], two, rtol=1e-5)
+    assert len(set(np.round(three, 4))) == 3  # three different episodes
+    assert not np.allclose(np.asarray(evaluate[2](agent, jax.random.key(12))), two)

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc.agents.registry import acting_latent
+from lnnmpc.train.loop import evaluation_keys, evaluation_step_keys
 
 
 @functools.lru_cache(maxsize=8)
@@ -26,10 +27,10 @@ def rollout_program(agent, env, episodes: int, steps: int | None = None):
     state is an argument, so one compilation serves every checkpoint of a run."""
     n = episodes
 
-    def body(state, loop_carry, k):
+    def body(state, k_act, loop_carry, t):
         s, carry = loop_carry
         act = jax.vmap(lambda c, o, dt, kk, f: agent.act(state, c, o, dt, kk, explore=False, first_step=f))
-        action, carry = act(carry, s.obs, s.dt, jax.random.split(k, n), s.t == 0)
+        action, carry = act(carry, s.obs, s.dt, evaluation_step_keys(k_act, t), s.t == 0)
         nxt = jax.vmap(env.step)(s, action)
         record = {"latent": acting_latent(agent, state, carry, s.obs), "obs": s.obs, "clean_obs": s.clean_obs,
                   "qpos": s.physics.qpos, "qvel": s.physics.qvel, "action": action, "dt": s.dt,
@@ -38,10 +39,10 @@ def rollout_program(agent, env, episodes: int, steps: int | None = None):
 
     def episodes_from(state, key):  # reset and scan in one compiled program (eager MJX resets are slow)
         carries = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), agent.initial_carry())
-        k_reset, k_act = jax.random.split(key)
-        env_state = jax.vmap(env.reset)(jax.random.split(k_reset, n))
-        return jax.lax.scan(functools.partial(body, state), (env_state, carries),
-                            jax.random.split(k_act, steps or env.episode_length))[1]
+        k_reset, k_act = evaluation_keys(key, n)  # the trainer's evaluation: the same key plays the same episodes
+        env_state = jax.vmap(env.reset)(k_reset)
+        return jax.lax.scan(functools.partial(body, state, k_act), (env_state, carries),
+                            jnp.arange(steps or env.episode_length))[1]
 
     return jax.jit(episodes_from)
 

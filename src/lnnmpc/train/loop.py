@@ -186,7 +186,8 @@ class TrainingLoop:
 
     # -------------------------------------------------------------------------------------- evaluate
     def evaluate(self, agent: Any, key: jax.Array) -> jax.Array:
-        """Returns (eval_episodes,) of deterministic MPPI episodes, run in parallel, each with its own seed."""
+        """Returns (eval_episodes,) of deterministic MPPI episodes, run in parallel, each with its own seed
+        (episode i's from ``fold_in(key, i)``: more episodes with the same key extend the set)."""
         return self._eval_episodes(agent, key, latents=False)[0]
 
     def evaluate_with_rank(self, agent: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -197,20 +198,32 @@ class TrainingLoop:
 
     def _eval_episodes(self, agent: Any, key: jax.Array, latents: bool) -> tuple[jax.Array, jax.Array | None]:
         n, env = self.config.eval_episodes, self.eval_env
-        k_reset, k_act = jax.random.split(key)
-        state = jax.vmap(env.reset)(jax.random.split(k_reset, n))
+        k_reset, k_act = evaluation_keys(key, n)
+        state = jax.vmap(env.reset)(k_reset)
 
-        def body(loop_carry, k):
+        def body(loop_carry, t):
             state, carry, total = loop_carry
             act = jax.vmap(lambda c, o, dt, kk, f: self.agent.act(agent, c, o, dt, kk, explore=False, first_step=f))
-            action, carry = act(carry, state.obs, state.dt, jax.random.split(k, n), state.t == 0)
+            action, carry = act(carry, state.obs, state.dt, evaluation_step_keys(k_act, t), state.t == 0)
             z = acting_latent(self.agent, agent, carry, state.obs) if latents else None
             state = jax.vmap(env.step)(state, action)
             return (state, carry, total + state.reward), z
 
-        keys = jax.random.split(k_act, env.episode_length)
-        (_, _, total), z = jax.lax.scan(body, (state, self.initial_carries(n), jnp.zeros((n,))), keys)
+        steps = jnp.arange(env.episode_length)
+        (_, _, total), z = jax.lax.scan(body, (state, self.initial_carries(n), jnp.zeros((n,))), steps)
         return total, z
+
+
+def evaluation_keys(key: jax.Array, episodes: int) -> tuple[jax.Array, jax.Array]:
+    """(reset keys (episodes,), acting keys (episodes,)) of an evaluation: episode i's from ``fold_in(key, i)``
+    alone, so the first k episodes of an evaluation of n are those of an evaluation of k with the same key."""
+    pairs = jax.vmap(lambda i: jax.random.split(jax.random.fold_in(key, i)))(jnp.arange(episodes))  # (n, 2)
+    return pairs[:, 0], pairs[:, 1]
+
+
+def evaluation_step_keys(act_keys: jax.Array, t: jax.Array) -> jax.Array:
+    """The planner's keys (episodes,) at agent step ``t`` of the episodes of ``act_keys`` (episodes,)."""
+    return jax.vmap(jax.random.fold_in, in_axes=(0, None))(act_keys, t)
 
 
 def effective_rank(z: jax.Array) -> jax.Array:
