@@ -133,7 +133,8 @@ class MLP(nn.Module):
                 x = nn.Dropout(self.dropout, deterministic=deterministic)(x)
             x = mish(nn.LayerNorm(epsilon=1e-5)(x))
         init = nn.initializers.zeros if self.zero_output else _KERNEL_INIT
-        x = nn.Dense(self.out_dim, kernel_init=init, name=f"Dense_{len(self.hidden)}")(x)
+        dense = SplitDense if isinstance(x, tuple) else nn.Dense  # a tuple still, only without hidden layers
+        x = dense(self.out_dim, kernel_init=init, name=f"Dense_{len(self.hidden)}")(x)
         if self.output_layer_norm:
             x = nn.LayerNorm(epsilon=1e-5)(x)
         return simnorm(x, self.simnorm_dim) if self.simnorm_dim else x
