@@ -568,6 +568,32 @@ def test_ingest_batch_never_replaces_a_longer_filed_run_with_a_shorter_copy(tmp_
     assert not filed_evals.exists() and result.stdout.count("dropped") == 1
 
 
+def test_throughput_ab_runs_each_snapshot_with_its_own_package(tmp_path):
+    """``throughput_ab.sh NAME args`` runs runs/gpu-old's then runs/gpu-head's train_throughput.py, each with its
+    own src/ after $SITE on PYTHONPATH, the same arguments and an --out per version; a missing snapshot stops it
+    with its name."""
+    import subprocess
+
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "throughput_ab.sh")
+    fake = ("import os, sys\n"
+            "line = os.environ['PYTHONPATH'] + ' | ' + ' '.join(sys.argv[1:])\n"
+            "open(os.environ['LOG'], 'a').write(line + '\\n')\n")
+    for version in ("old", "head"):
+        (tmp_path / "runs" / f"gpu-{version}" / "benchmarks").mkdir(parents=True)
+        (tmp_path / "runs" / f"gpu-{version}" / "benchmarks" / "train_throughput.py").write_text(fake)
+    log = tmp_path / "log.txt"
+    env = {**os.environ, "LOG": str(log), "OUT": "/out", "SITE": "/site"}
+    result = subprocess.run(["bash", script, "run9", "--tasks", "cartpole-swingup", "--seeds", "1,8"], cwd=tmp_path,
+                            env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    lines = log.read_text().splitlines()
+    assert lines == [f"/site:{tmp_path}/runs/gpu-{v}/src | --tasks cartpole-swingup --seeds 1,8 --out "
+                     f"/out/{{device}}-run9-{v}.json" for v in ("old", "head")]
+    result = subprocess.run(["bash", script, "run9"], cwd=tmp_path, env={**env, "VERSIONS": "new"},
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1 and "runs/gpu-new holds no snapshot" in result.stderr
+
+
 def test_summarize_against_hand_computation():
     returns = np.array([[100.0, 200.0, 300.0], [400.0, 500.0, 600.0]])
     s = summarize(returns)
