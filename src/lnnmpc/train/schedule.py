@@ -17,6 +17,11 @@ def steps_after(iterations: int, per_iteration: int, episode_length: int) -> int
     return per_iteration * (iterations - iterations // (episode_length + 1))
 
 
+def seed_iterations(seed_steps: int, per_iteration: int) -> int:
+    """Loop iterations of the random seed phase of ``seed_steps`` environment steps per seed."""
+    return math.ceil(seed_steps / per_iteration)
+
+
 def iterations_for(steps: int, per_iteration: int, episode_length: int) -> int:
     """The fewest iterations from a fresh start whose :func:`steps_after` reaches ``steps``."""
     stepping = max(0, math.ceil(steps / per_iteration))

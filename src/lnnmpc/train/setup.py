@@ -8,7 +8,6 @@ compilation cache. :mod:`lnnmpc.train.trainer` runs what this sets up.
 from __future__ import annotations
 
 import dataclasses
-import math
 import os
 from typing import Any
 
@@ -52,7 +51,7 @@ class Setup:
     @property
     def seed_iterations(self) -> int:
         """Loop iterations of the random seed phase."""
-        return math.ceil(self.config.seed_steps / self.per_iteration)
+        return schedule.seed_iterations(self.config.seed_steps, self.per_iteration)
 
     @property
     def chunk(self) -> int:
@@ -87,8 +86,8 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
         replay_capacity_for(config.steps, env.action_repeat, config.envs) + 2 * (env.episode_length + 1))
     if capacity < agent.sequence_length + 1:
         raise ConfigError(f"replay_capacity={capacity} is below the training window ({agent.sequence_length})")
-    seed_iterations = math.ceil(config.seed_steps / (config.envs * env.action_repeat))
-    guard = not windows_after_seed_phase(seed_iterations, env.episode_length, agent.sequence_length, capacity)
+    seeded = schedule.seed_iterations(config.seed_steps, config.envs * env.action_repeat)
+    guard = not windows_after_seed_phase(seeded, env.episode_length, agent.sequence_length, capacity)
     return TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=config.envs, batch_size=config.batch_size,
                                                          replay_capacity=capacity,
                                                          eval_episodes=config.eval_episodes,
