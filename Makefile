@@ -36,13 +36,16 @@ else
 endif
 
 # make eval RUN=<run folder> [OBS=...] [EPISODES=10] [BACKEND=mjx|dm_control] [CHECKPOINT=<env step>]
+#           [ACTOR=prior]: the policy prior alone acts (no MPPI), to see what planning adds
 RUN        ?=
 EPISODES   ?= 10
 BACKEND    ?= mjx
 CHECKPOINT ?=
+ACTOR      ?=
 eval: $(STAMP)
 	$(PY) -m lnnmpc.train.cli eval "$(RUN)" --episodes $(EPISODES) --backend $(BACKEND) \
-		$(if $(filter command line,$(origin OBS)),--obs "$(OBS)") $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
+		$(if $(filter command line,$(origin OBS)),--obs "$(OBS)") $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
+		$(if $(ACTOR),--actor $(ACTOR))
 
 # make video RUN=<run folder> [OUT=episode.mp4|.gif] [CHECKPOINT=...]  (offscreen OpenGL: Mesa EGL by default)
 # [FILMS=N [FALLS=R]]: N episodes into a folder, keeping those whose return ended below R

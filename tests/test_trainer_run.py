@@ -336,6 +336,28 @@ def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(refere
     assert mean == pytest.approx(returns.mean(), abs=0.06)
 
 
+def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monkeypatch, cache):
+    """``--actor prior``: the same checkpoint and episodes with the policy prior acting instead of MPPI, in a CSV
+    of its own on each backend; a misspelt actor is refused before anything runs."""
+    import lnnmpc
+
+    monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
+    planner = lnnmpc.evaluate(str(reference), episodes=2, seed=5, verbose=False)
+    prior = lnnmpc.evaluate(str(reference), episodes=2, seed=5, actor="prior", verbose=False)
+    assert os.path.basename(prior.path) == "mjx-prior-clean-2804.csv" and prior.returns.shape == (2, 2)
+    assert {r["actor"] for r in _rows(prior.path)} == {"prior"} and {r["actor"] for r in _rows(planner.path)} == {
+        "planner"}
+    assert np.all((prior.returns >= 0) & (prior.returns <= 1000))
+    assert not np.allclose(prior.returns, planner.returns)  # another actor, not MPPI under another name
+    result = _run(["eval", str(reference), "--episodes", "1", "--backend", "dm_control", "--actor", "prior"], cache)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "checkpoint 2,804 on dm_control with clean, acting with the prior: return " in result.stdout
+    rows = _rows(reference / "evals" / "dm_control-prior-clean-2804.csv")
+    assert len(rows) == 2 and {r["actor"] for r in rows} == {"prior"}
+    bad = _run(["eval", str(reference), "--actor", "mpc"], cache)
+    assert bad.returncode == 2 and "unknown actor 'mpc'; known: planner, prior" in bad.stderr
+
+
 def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache):
     import imageio_ffmpeg
 

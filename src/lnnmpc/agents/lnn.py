@@ -358,3 +358,12 @@ class LNNTDMPC2(TDMPC2):
         action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params),
                                     latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step)
         return action, LNNCarry(h=h, prev_action=action, plan_mean=mean)
+
+    def act_prior(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
+                  explore: bool, first_step: jax.Array) -> tuple[jax.Array, LNNCarry]:
+        """:meth:`act` with the policy prior in place of MPPI (the encoder reads the step as in :meth:`act`; the
+        plan mean passes through)."""
+        carry = self._start(carry, first_step)
+        h = self._encode_one(state.params, carry, obs, dt)
+        action = self.prior_action(state.params, self.latent_of(state.params, h, obs), key, explore=explore)
+        return action, LNNCarry(h=h, prev_action=action, plan_mean=carry.plan_mean)

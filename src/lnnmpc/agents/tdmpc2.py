@@ -262,6 +262,18 @@ class TDMPC2:
         """Protocol act: MPPI action (A,) for one observation (d,) and the next carry (the plan mean)."""
         return self.plan(state, obs, carry, key, explore=explore, first_step=first_step)
 
+    def act_prior(self, state: AgentState, carry: jax.Array, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
+                  explore: bool, first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """:meth:`act` without MPPI: the policy prior's action (A,) from the latent the planner would plan from
+        (tanh of its mean; a sample when ``explore``), TD-MPC2's ``act(mpc=False)``. The carry passes through."""
+        return self.prior_action(state.params, self._apply(state.params, obs, method="encode"), key,
+                                 explore=explore), carry
+
+    def prior_action(self, params, z: jax.Array, key: jax.Array, *, explore: bool) -> jax.Array:
+        """The policy prior's action (..., A) at latents z (..., Z): tanh of its mean, or a sample (``explore``)."""
+        sample = self._policy_sample(params, z, key)
+        return sample.action if explore else sample.mean_action
+
     # ----------------------------------------------------------------------------------------- act
     def plan(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
              first_step: jax.Array) -> tuple[jax.Array, jax.Array]:

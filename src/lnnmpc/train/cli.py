@@ -3,7 +3,7 @@
     python -m lnnmpc.train.cli train --task walker-run --seeds 4 --steps 200000 --obs "noise=0.1,flicker=0.2"
     python -m lnnmpc.train.cli train --resume runs/walker-run/tdmpc2/20260101-120000-noise0.1-flicker0.2
     python -m lnnmpc.train.cli train --task walker-run --agent cfc-zp-det --set lambda_=0 --check  # print only
-    python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control]
+    python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control] [--actor prior]
     python -m lnnmpc.train.cli video RUN [--out episode.gif] [--episodes 50 --falls-below 400]
     python -m lnnmpc.train.cli report RUN            # redraw curve.png and summary.md
 
@@ -77,6 +77,9 @@ def _eval_parser(sub) -> None:
                    help="environment step of a checkpoint or of policy.npz (default the newest)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="CSV path (default <run>/evals/<backend>-<obs>-<step>.csv)")
+    p.add_argument("--actor", default="planner",
+                   help="planner (MPPI, as training evaluates) or prior (the policy prior alone, no planning; "
+                        "CSV <backend>-prior-<obs>-<step>.csv)")
 
 
 def _video_parser(sub) -> None:
@@ -162,7 +165,7 @@ def run_command(args: argparse.Namespace) -> None:
         from lnnmpc.train.evaluate import evaluate
 
         evaluate(args.run, obs=args.obs, episodes=args.episodes, backend=args.backend, checkpoint=args.checkpoint,
-                 seed=args.seed, out=args.out)
+                 seed=args.seed, out=args.out, actor=args.actor)
     elif args.command == "video":
         os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen OpenGL without a display; before dm_control loads
         from lnnmpc.train.video import record, record_episodes

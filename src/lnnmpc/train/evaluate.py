@@ -11,7 +11,8 @@ program on the default JAX device with the physics profile the run trained on; `
 same agent on the original dm_control simulator on the CPU (:mod:`lnnmpc.train.dm_backend`). The CSV has one
 row per (seed, episode) with the checkpoint's environment step, backend and corruption options. A run folder
 without its checkpoints (one brought back from a GPU) is evaluated from its ``policy.npz``
-(:mod:`lnnmpc.train.policy_file`), the newest checkpoint's parameters.
+(:mod:`lnnmpc.train.policy_file`), the newest checkpoint's parameters. ``actor="prior"`` lets the policy prior
+act alone instead of MPPI (:mod:`lnnmpc.agents.actor`): what planning adds to the learned policy.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ import jax
 import numpy as np
 
 from lnnmpc import envs
+from lnnmpc.agents.actor import ACTORS, with_actor
 from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
 from lnnmpc.train.compat import check_layout, state_signature
@@ -130,16 +132,20 @@ def mjx_evaluator(agent, env, episodes: int, seeds: int):
 
 
 def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, backend: str = "mjx",
-             checkpoint: int | None = None, seed: int = 0, out: str | None = None,
+             checkpoint: int | None = None, seed: int = 0, out: str | None = None, actor: str = "planner",
              verbose: bool = True) -> EvalResult:
     """Evaluates a run's checkpoint; writes a CSV (``out`` or ``<run>/evals/<backend>-<obs>-<step>.csv``).
 
     ``obs``: corruption options (text like "noise=0.3" or a dict; None: the run's evaluation corruptions).
     ``episodes``: per seed. ``checkpoint``: an environment step with a checkpoint (None: the latest).
+    ``actor``: "planner" (MPPI, the training evaluation's) or "prior" (the policy prior alone, tanh of its mean;
+    :mod:`lnnmpc.agents.actor`), whose CSV is named ``<backend>-prior-<obs>-<step>.csv``.
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
     require_int("episodes", episodes, 1)
+    if actor not in ACTORS:
+        raise ConfigError(f"unknown actor {actor!r}; known: {', '.join(ACTORS)}")
     config = runfolder.saved_config(run)
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     step = choose_checkpoint(run, checkpoint)
@@ -151,24 +157,27 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     policy = load_policy(run, step)
     check_observation_size(env, policy)
     key = jax.random.key(seed)
+    agent = with_actor(policy.loop.agent, actor)
     if backend == "mjx":
-        returns = mjx_evaluator(policy.loop.agent, env, episodes, config.seeds)(policy.agent_state, key)
+        returns = mjx_evaluator(agent, env, episodes, config.seeds)(policy.agent_state, key)
     else:
         from lnnmpc.train.dm_backend import run_episodes
 
         unit = f"agent steps of {config.seeds} seed(s) x {episodes} episodes on dm_control"
-        returns = run_episodes(env, policy.loop.agent, policy.agent_state, episodes, key, seed=seed,
+        returns = run_episodes(env, agent, policy.agent_state, episodes, key, seed=seed,
                                progress=StepProgress(unit) if verbose else None)
-    path = out or os.path.join(run, "evals", f"{backend}-{obs_tag(options)}-{step}.csv")
+    by = "" if actor == "planner" else f"{actor}-"
+    path = out or os.path.join(run, "evals", f"{backend}-{by}{obs_tag(options)}-{step}.csv")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     if os.path.exists(path):
         os.remove(path)
     runfolder.append_csv(path, [
         {"env_step": step, "seed": s, "episode": e, "return": float(returns[s, e]), "backend": backend,
-         "obs": obs_tag(options)} for s in range(returns.shape[0]) for e in range(returns.shape[1])])
+         "obs": obs_tag(options), "actor": actor} for s in range(returns.shape[0]) for e in range(returns.shape[1])])
     result = EvalResult(returns=returns, checkpoint=step, backend=backend, obs=options, path=path)
     if verbose:
+        acting = "" if actor == "planner" else f", acting with the {actor}"
         sys.stdout.write(f"{config.task} {config.agent} checkpoint {step:,} on {backend} with "
-                         f"{obs_tag(options)}: return {result.mean:.1f} ± {result.std:.1f} "
+                         f"{obs_tag(options)}{acting}: return {result.mean:.1f} ± {result.std:.1f} "
                          f"({returns.shape[0]} seed(s) x {episodes} episodes) -> {path}\n")
     return result
