@@ -3,6 +3,8 @@ latent MPPI plans from, the encoder reads the step exactly as the planner's act 
 
 from __future__ import annotations
 
+import copy
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -74,6 +76,7 @@ def test_actor_names_and_wrapping():
     assert with_actor(agent, "planner") is agent
     prior = with_actor(agent, "prior")
     assert isinstance(prior, PriorActing) and prior.config is agent.config  # everything but act is the agent's
+    assert copy.copy(prior).agent is agent  # copy builds it without __init__: no recursion through __getattr__
     with pytest.raises(ValueError, match=r"unknown actor 'mpc'; known: planner, prior"):
         with_actor(agent, "mpc")
     with pytest.raises(ValueError, match="has no policy prior"):

@@ -24,6 +24,8 @@ class PriorActing:
         self.agent = agent
 
     def __getattr__(self, name: str) -> Any:
+        if name == "agent":  # not set yet (copy and pickle build the object without __init__): no recursion
+            raise AttributeError(name)
         return getattr(self.agent, name)
 
     def act(self, state, carry, obs, dt, key, *, explore: bool, first_step):

@@ -361,8 +361,8 @@ class LNNTDMPC2(TDMPC2):
 
     def act_prior(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
                   explore: bool, first_step: jax.Array) -> tuple[jax.Array, LNNCarry]:
-        """:meth:`act` with the policy prior in place of MPPI (the encoder reads the step as in :meth:`act`; the
-        plan mean passes through)."""
+        """:meth:`act` with the policy prior in place of MPPI: (action (A,), next carry); the encoder reads the step
+        as in :meth:`act`, the plan mean passes through."""
         carry = self._start(carry, first_step)
         h = self._encode_one(state.params, carry, obs, dt)
         action = self.prior_action(state.params, self.latent_of(state.params, h, obs), key, explore=explore)
