@@ -33,9 +33,14 @@ class PriorActing:
         return self.agent.act_prior(state, carry, obs, dt, key, explore=explore, first_step=first_step)
 
 
-def with_actor(agent: Any, actor: str) -> Any:
-    """``agent`` acting with ``actor``: "planner" (MPPI, the agent itself) or "prior" (:class:`PriorActing`).
-    Raises ValueError naming an unknown actor and the known ones."""
+def check_actor(actor: str) -> None:
+    """Raises ValueError naming an unknown ``actor`` and the known ones (:data:`ACTORS`)."""
     if actor not in ACTORS:
         raise ValueError(f"unknown actor {actor!r}; known: {', '.join(ACTORS)}")
+
+
+def with_actor(agent: Any, actor: str) -> Any:
+    """``agent`` acting with ``actor``: "planner" (MPPI, the agent itself) or "prior" (:class:`PriorActing`);
+    :func:`check_actor` refuses any other."""
+    check_actor(actor)
     return agent if actor == "planner" else PriorActing(agent)

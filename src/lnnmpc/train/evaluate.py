@@ -25,7 +25,7 @@ import jax
 import numpy as np
 
 from lnnmpc import envs
-from lnnmpc.agents.actor import ACTORS, with_actor
+from lnnmpc.agents.actor import check_actor, with_actor
 from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
 from lnnmpc.train.compat import check_layout, state_signature
@@ -118,9 +118,11 @@ def _restored(policy: Policy, run: str) -> Policy:
 
 
 def mjx_evaluator(agent, env, episodes: int, seeds: int):
-    """A compiled evaluation of ``episodes`` deterministic MPPI episodes per seed on MJX ``env``: returns
-    ``run(agent_state, key) -> (seeds, episodes)`` returns, the seeds' keys split from ``key``. The program is the
-    trainer's for the same settings (a compilation-cache hit); call ``run`` for as many agent states as needed."""
+    """A compiled evaluation of ``episodes`` deterministic episodes per seed on MJX ``env``, acting with
+    ``agent.act`` (MPPI; the prior alone under :func:`lnnmpc.agents.actor.with_actor`): returns
+    ``run(agent_state, key) -> (seeds, episodes)`` returns, the seeds' keys split from ``key``. With the planner
+    the program is the trainer's for the same settings (a compilation-cache hit); call ``run`` for as many agent
+    states as needed."""
     placement = SeedPlacement(1)
     program = placement.compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=episodes)).evaluate)
 
@@ -144,8 +146,10 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
     require_int("episodes", episodes, 1)
-    if actor not in ACTORS:
-        raise ConfigError(f"unknown actor {actor!r}; known: {', '.join(ACTORS)}")
+    try:  # before anything loads
+        check_actor(actor)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
     config = runfolder.saved_config(run)
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     step = choose_checkpoint(run, checkpoint)
