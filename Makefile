@@ -16,6 +16,7 @@ install: $(STAMP)
 
 # make train TASK=walker-run [AGENT=tdmpc2] [SEEDS=1] [STEPS=200000] [ENVS=1] [OBS="noise=0.1"] [EVAL_OBS=...]
 #            [TRAIN_ARGS="--set plan_horizon=5 --eval-every 20000 ..."]       (python -m lnnmpc.train.cli train -h)
+#            [TRAIN_ARGS="--eval-prior"]: every evaluation also plays its episodes with the policy prior alone
 # make train RESUME=<run folder> [STEPS=...]        continue a run exactly where its newest checkpoint left it
 TASK     ?= walker-run
 AGENT    ?= cfc-zp-det
@@ -60,16 +61,19 @@ report: $(STAMP)
 	$(PY) -m lnnmpc.train.cli report "$(RUN)"
 
 # make compare RUNS="<run folder> <run folder> ..." OUT=curves.png [LABELS="'raw inputs' 'symlog inputs'"]
-#              [METRICS=value_loss,reward_loss] [POOL="3 seeds"]
+#              [METRICS=value_loss,reward_loss] [POOL="3 seeds"] [EVAL_COLUMN=prior_return]
 #   learning curves of several runs on one plot (and the numbers in curves.csv); METRICS adds train.csv panels;
 #   POOL=LABEL adds one curve of all the runs' seeds together (one configuration, other master seeds)
+#   EVAL_COLUMN=prior_return plots the policy prior's returns (runs trained with TRAIN_ARGS="--eval-prior")
 RUNS    ?=
 LABELS  ?=
 METRICS ?=
 POOL    ?=
+EVAL_COLUMN ?=
 compare: $(STAMP)
 	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS)) \
-		$(if $(METRICS),--metrics $(METRICS)) $(if $(POOL),--pool "$(POOL)")
+		$(if $(METRICS),--metrics $(METRICS)) $(if $(POOL),--pool "$(POOL)") \
+		$(if $(EVAL_COLUMN),--eval-column $(EVAL_COLUMN))
 
 # make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"] [FALLS=400]
 #   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means), the speed and

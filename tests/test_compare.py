@@ -283,3 +283,34 @@ def test_reports_without_plots_rewrite_only_the_summary(tmp_path):
     summary = open(os.path.join(a, "summary.md")).read()
     assert "1.0 min." not in summary and "Training time (this machine, incl. compilation): 2.0 min." in summary
     assert "**Final return 650.0" in summary
+
+
+def test_compare_plots_the_policy_priors_returns_of_runs_that_log_them(tmp_path, capsys):
+    """``--eval-column prior_return``: the curve of the prior's returns (evaluations before a resumed run turned
+    eval_prior on have none and are left out); a run without the column is refused, naming the columns it has.
+    The run's own summary gives the prior's last evaluation beside MPPI's."""
+    from lnnmpc.train import report
+
+    a = _run(tmp_path / "a", "tdmpc2", {10000: [[100, 300]], 20000: [[600, 700]]}, eval_prior=True)
+    rows = runfolder.read_csv(os.path.join(a, "eval.csv"))
+    for r, prior in zip(rows, ["", "", "50", "150"], strict=True):
+        r["prior_return"] = prior
+    runfolder.write_csv(os.path.join(a, "eval.csv"), list(rows[0]), rows)
+    out = str(tmp_path / "prior.png")
+    assert main([a, "--eval-column", "prior_return", "--out", out]) == 0
+    with open(str(tmp_path / "prior.csv")) as f:
+        assert [(r["env_step"], float(r["mean"])) for r in csv.DictReader(f)] == [("20000", 100.0)]
+    assert main([a, "--out", out]) == 0  # MPPI's returns, as before
+    with open(str(tmp_path / "prior.csv")) as f:
+        assert [(r["env_step"], float(r["mean"])) for r in csv.DictReader(f)] == [("10000", 200.0), ("20000", 650.0)]
+    b = _run(tmp_path / "b", "tdmpc2", {10000: [[1.0]]})
+    assert main([a, b, "--eval-column", "prior_return", "--out", out]) == 2
+    assert f"{b!r} logs no 'prior_return' in eval.csv; its columns: env_step, seed, episode, return" in (
+        capsys.readouterr().err)
+    for run in (a, b):
+        report.write_reports(run)  # curve.png: a dashed curve of the prior where the run logs it
+        assert os.path.getsize(os.path.join(run, "curve.png")) > 10_000
+    summary = open(os.path.join(a, "summary.md")).read()
+    assert "**Final return 650.0" in summary
+    assert "The policy prior alone on the same episodes: 100.0 ± 50.0 at 20,000 env steps (best 100.0)." in summary
+    assert "policy prior" not in open(os.path.join(b, "summary.md")).read()

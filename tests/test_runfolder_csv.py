@@ -57,6 +57,8 @@ def test_progress_line_shows_a_dash_until_speed_and_return_are_measured():
     assert first.startswith("[...") and "4,992/200,000 env steps" in first
     progress.rate, progress.last_eval = 151.4, 795.04
     assert progress.line(100_000).endswith("     151 steps/s  last eval   795.0")
+    progress.last_prior = 412.26  # a run with eval_prior: the policy prior's mean beside MPPI's
+    assert progress.line(100_000).endswith("     151 steps/s  last eval   795.0 (prior 412.3)")
     assert progress.line(100_000).startswith("[" + "#" * 15 + "." * 15 + "]")
 
 

@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import struct
 
 from lnnmpc import envs
 from lnnmpc.agents.mppi import MPPIConfig
@@ -162,3 +163,54 @@ def test_more_evaluation_episodes_with_the_same_key_extend_the_set(loop, seeded)
     np.testing.assert_allclose(three[:2], two, rtol=1e-5)
     assert len(set(np.round(three, 4))) == 3  # three different episodes
     assert not np.allclose(np.asarray(evaluate[2](agent, jax.random.key(12))), two)
+
+
+@struct.dataclass
+class _ToyState:
+    obs: jax.Array
+    dt: jax.Array
+    t: jax.Array
+    reward: jax.Array
+
+
+class _ToyEnv:
+    """Evaluation episodes of 20 steps without physics (their programs compile in seconds): the observation (5,)
+    starts N(0, 1) from the reset key and moves by the action, the reward is exp(-|o|^2)."""
+
+    episode_length = 20
+
+    def reset(self, key: jax.Array) -> _ToyState:
+        return _ToyState(obs=jax.random.normal(key, (5,)), dt=jnp.ones(()), t=jnp.zeros((), jnp.int32),
+                         reward=jnp.zeros(()))
+
+    def step(self, state: _ToyState, action: jax.Array) -> _ToyState:
+        obs = 0.9 * state.obs + 0.5 * action[0]
+        return _ToyState(obs=obs, dt=state.dt, t=state.t + 1, reward=jnp.exp(-jnp.sum(obs**2)))
+
+
+def test_evaluation_with_the_prior_plays_the_same_episodes_with_the_prior_acting(loop, seeded):
+    """``eval_prior``: one program returns MPPI's returns and ranks as without it, and the returns of the same
+    episodes (keys, initial states) with the policy prior acting: those of a loop whose agent acts with the prior
+    (``with_actor``), evaluated with the same key."""
+    import dataclasses
+
+    from lnn_helpers import quick_jit
+
+    from lnnmpc.agents.actor import with_actor
+
+    config = dataclasses.replace(loop.config, eval_episodes=3)
+    evaluate = lambda acting, **changes: quick_jit(TrainingLoop(acting, loop.env, _ToyEnv(), dataclasses.replace(
+        config, **changes)).evaluate_logged)
+    agent, key = jax.tree_util.tree_map(lambda x: x[0], seeded[0].agent), jax.random.key(11)
+    planner, both, alone = ({k: np.asarray(v) for k, v in evaluate(acting, **changes)(agent, key).items()}
+                            for acting, changes in ((loop.agent, {}), (loop.agent, {"eval_prior": True}),
+                                                    (with_actor(loop.agent, "prior"), {})))
+    assert set(planner) == {"return", "effective_rank"} and set(both) == {"return", "effective_rank", "prior_return"}
+    np.testing.assert_allclose(both["return"], planner["return"], rtol=1e-6)
+    np.testing.assert_allclose(both["effective_rank"], planner["effective_rank"], rtol=1e-6)
+    np.testing.assert_allclose(both["prior_return"], alone["return"], rtol=1e-6)
+    # another actor, not MPPI again (untrained, the two act alike: returns 0.02-0.04 apart; round-off ~1e-5)
+    assert np.abs(both["prior_return"] - both["return"]).max() > 1e-3
+    assert len(set(np.round(both["prior_return"], 4))) == 3  # three episodes, from three initial states
+    with pytest.raises(ValueError, match="eval_prior must be True or False, got 1"):
+        LoopConfig(eval_prior=1)

@@ -47,6 +47,7 @@ def test_parse_obs_and_overrides():
     ({"name": "a/b"}, "run name 'a/b' must not contain '/'"),
     ({"wandb": "my project"}, "wandb project 'my project' must be letters, digits, '.', '_' or '-'"),
     ({"compile_ahead": "yes"}, "compile_ahead='yes'; allowed: auto, on, off"),
+    ({"eval_prior": "yes"}, "eval_prior must be True or False, got 'yes'"),
 ])
 def test_bad_values_are_named_with_the_allowed_ones(values, message):
     with pytest.raises(ConfigError) as error:
@@ -156,6 +157,8 @@ def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):
     chunks = -(-(10**6 // setup.per_iteration) // setup.chunk)
     assert 10**6 <= setup.final_env_steps < 10**6 + chunks * setup.per_iteration
     assert TrainConfig.from_dict(saved.to_dict()) == saved
+    # the prior's evaluations may be turned on for the rest of a run: they change nothing of the training
+    assert incompatibilities(saved, dataclasses.replace(saved, eval_prior=True)) == []
     with pytest.raises(ConfigError, match=r"unknown configuration key\(s\) \['colour'\]"):
         TrainConfig.from_dict({**saved.to_dict(), "colour": 1})
 
@@ -265,11 +268,14 @@ def test_train_check_validates_and_prints_without_writing(tmp_path, capsys):
     assert out.startswith(f"OK: {run} (new run)\n")
     assert "cartpole-balance, cfc-zp-det, 2 seed(s) x 3 env(s), 200,000 env steps, obs flicker0.2-noise0.1" in out
     assert "agent overrides: lambda_=0" in out
+    assert "evaluation every 10,000 env steps, 10 episode(s) per seed\n" in out
     assert "chunk 987 iterations of 6 env steps (ends at 200,034 env steps)" in out
     assert not (tmp_path / "new").exists()  # nothing written
     with pytest.raises(SystemExit) as exit_:
         main(["train", "--task", "cartpole-balance", "--small", "--set", "lamda=0", "--out", str(run), "--check"])
     assert exit_.value.code == 2 and "unknown hyperparameter 'lamda'" in capsys.readouterr().err
+    main(["train", "--task", "cartpole-balance", "--small", "--eval-prior", "--out", str(run), "--check"])
+    assert "10 episode(s) per seed, also with the policy prior alone (prior_return)\n" in capsys.readouterr().out
     (tmp_path / "file").write_text("")
     with pytest.raises(ConfigError, match="cannot be created: .*file' is not a writable folder"):
         runfolder.check_creatable(str(tmp_path / "file" / "run"))
@@ -412,7 +418,9 @@ def test_a_committed_run_from_before_the_newest_agent_fields_reads_as_the_same_c
     with open(os.path.join(run, "config.json")) as f:
         saved = json.load(f)
     assert "learn_episode_starts" not in saved["agent_config"]  # the run predates it
+    assert "eval_prior" not in saved["config"]  # and the prior's evaluations: off, as it ran
     config = TrainConfig.from_dict(saved["config"])
+    assert config.eval_prior is False
     agent = make_agent(config.agent, 24, 6, model_size=config.model_size, small=config.small,
                        overrides=config.overrides or None).config
     assert agent_config_changes(saved["agent_config"], agent_config_json(agent), agent.inactive_fields()) == []

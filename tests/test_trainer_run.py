@@ -266,6 +266,36 @@ def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(referenc
     assert _steps(run) == before and _rows(run / "eval.csv") == eval_before
 
 
+def test_a_run_resumed_with_eval_prior_logs_the_priors_returns_beside_mppis(reference, tmp_path, cache):
+    """``--eval-prior`` turned on for the last chunk of the reference (a resume may change it: the training is the
+    same): its evaluation's rows gain the policy prior's return of each episode, the earlier rows keep theirs and an
+    empty ``prior_return``; the progress line and summary give the prior's mean beside MPPI's. The reference itself
+    (eval_prior off) logs no such column (:func:`test_run_folder_holds_config_logs_checkpoints_plot_and_summary`)."""
+    import json
+
+    run = tmp_path / "prior"
+    shutil.copytree(reference, run)
+    shutil.rmtree(run / "checkpoints" / str(CHECKPOINTS[-1]))  # back to 1,902: one chunk and one evaluation left
+    result = _run(["train", "--resume", str(run), "--eval-prior"], cache)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert json.loads((run / "config.json").read_text())["config"]["eval_prior"] is True
+    with open(run / "eval.csv") as f:
+        assert csv.DictReader(f).fieldnames == ["env_step", "seed", "episode", "return", "effective_rank",
+                                                "prior_return"]
+    rows, planner = _rows(run / "eval.csv"), _rows(reference / "eval.csv")
+    assert [{**r, "prior_return": ""} for r in planner if int(r["env_step"]) <= CHECKPOINTS[-2]] == [
+        r for r in rows if int(r["env_step"]) <= CHECKPOINTS[-2]]
+    last = [r for r in rows if int(r["env_step"]) == CHECKPOINTS[-1]]
+    # MPPI's episodes as without the prior's, bit for bit (the prior's play in a scan of their own)
+    assert [{k: v for k, v in r.items() if k != "prior_return"} for r in last] == [
+        r for r in planner if int(r["env_step"]) == CHECKPOINTS[-1]]
+    prior = np.asarray([float(r["prior_return"]) for r in last])
+    assert len(last) == 4 and np.all((prior >= 0) & (prior <= 1000))  # 2 seeds x 2 episodes, each its own
+    assert not np.allclose(prior, [float(r["return"]) for r in last])  # another actor
+    assert f"(prior {prior.mean():.1f})" in result.stderr
+    assert f"The policy prior alone on the same episodes: {prior.mean():.1f} ± " in (run / "summary.md").read_text()
+
+
 def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
     import lnnmpc
 

@@ -41,6 +41,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--seed-steps", type=int, help="random-action environment steps first (default 5000)")
     p.add_argument("--eval-every", type=int, help="environment steps between evaluations (default 10000)")
     p.add_argument("--eval-episodes", type=int, help="evaluation episodes per seed (default 10)")
+    p.add_argument("--eval-prior", action="store_true",
+                   help="every evaluation also plays its episodes with the policy prior acting alone (no MPPI): "
+                        "eval.csv's prior_return")
     p.add_argument("--checkpoint-every", type=int, help="environment steps between checkpoints (default 10000)")
     p.add_argument("--keep-checkpoints", type=int, help="newest checkpoints kept (default 3)")
     p.add_argument("--batch-size", type=int, help="sequences per update (default 256)")
@@ -151,6 +154,8 @@ def describe_setup(setup) -> str:
             f"  {c.task}, {c.agent}, {c.seeds} seed(s) x {c.envs} env(s), {c.steps:,} env steps, "
             f"obs {obs_tag(c.obs)}, eval obs {obs_tag(c.eval_obs)}\n"
             f"  agent overrides: {overrides}\n"
+            f"  evaluation every {c.eval_every:,} env steps, {c.eval_episodes} episode(s) per seed"
+            f"{', also with the policy prior alone (prior_return)' if c.eval_prior else ''}\n"
             f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps (ends at "
             f"{setup.final_env_steps:,} env steps), replay "
             f"{loop.config.replay_capacity:,} per env, batch {loop.config.batch_size}, "

@@ -18,6 +18,9 @@ they do. Those numbers go to ``<figure>-metrics.csv`` (run, label, metric, env_s
 configuration started with other master seeds (a one-GPU session runs walker one seed per call) read as one run;
 runs that differ in anything but how they were launched (:func:`pooling_differences`) are refused, naming it.
 To pool some runs only, join them with ``+`` (``runs/a0+runs/a1 runs/b0+runs/b1+runs/b2``: two curves).
+
+``--eval-column prior_return`` plots another column of the evaluation CSVs in place of ``return``: the policy
+prior's returns that runs trained with ``--eval-prior`` log beside MPPI's (each run's own ``curve.png`` draws both).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from lnnmpc.train import runfolder
 from lnnmpc.train.compat import agent_config_changes
 from lnnmpc.train.config import RESUMABLE_CHANGES, ConfigError, TrainConfig, command_status
 from lnnmpc.train.references import references
-from lnnmpc.train.report import eval_table, training_panels
+from lnnmpc.train.report import column_rows, eval_table, training_panels
 
 
 def default_label(config: dict) -> str:
@@ -43,16 +46,19 @@ def default_label(config: dict) -> str:
     return " ".join(parts)
 
 
-def load_curves(runs: list[str], labels: list[str] | None = None, evals: str | None = None) -> list[dict]:
-    """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table", "rows", "config"} (table:
-    :func:`eval_table` rows; rows: eval.csv's own rows; config: the run's whole config.json). A run given as
-    ``a+b+c`` (run folders joined by ``+``, where no folder has that name) is those runs pooled into one
+def load_curves(runs: list[str], labels: list[str] | None = None, evals: str | None = None,
+                column: str = "return") -> list[dict]:
+    """One entry per run: {"run", "label", "task", "agent", "eval_obs", "table", "rows", "config", "column"} (table:
+    :func:`eval_table` rows; rows: eval.csv's own rows, with ``column``'s values as their ``return`` and rows
+    without one left out (:func:`lnnmpc.train.report.column_rows`); config: the run's whole config.json). A run
+    given as ``a+b+c`` (run folders joined by ``+``, where no folder has that name) is those runs pooled into one
     (:func:`pool_curves`; label by default the first run's, with the pooled seed count). ``evals`` names a CSV
     under each run's ``evals/`` folder (what ``cli eval`` wrote, e.g. ``dm_control-clean-200192.csv``) to read
     instead of the training's ``eval.csv``.
 
     Raises ConfigError naming a folder that is not a run folder or has no evaluation yet (with ``evals``: the
-    files its ``evals/`` holds), and a label count that does not match the runs."""
+    files its ``evals/`` holds) or no value in ``column`` (naming its columns), and a label count that does not
+    match the runs."""
     if not runs:
         raise ConfigError("give at least one run folder")
     if labels is not None and len(labels) != len(runs):
@@ -60,7 +66,7 @@ def load_curves(runs: list[str], labels: list[str] | None = None, evals: str | N
     curves = []
     for i, run in enumerate(runs):
         if "+" in run and not os.path.exists(run):
-            pooled = pool_curves(load_curves(run.split("+"), evals=evals), "")
+            pooled = pool_curves(load_curves(run.split("+"), evals=evals, column=column), "")
             seeds = len({int(r["seed"]) for r in pooled["rows"]})
             pooled["label"] = labels[i] if labels else f"{default_label(pooled['config'])} ({seeds} seeds pooled)"
             for part in pooled["parts"]:  # (for the per-run tables: speed, commands)
@@ -68,7 +74,11 @@ def load_curves(runs: list[str], labels: list[str] | None = None, evals: str | N
             curves.append(pooled)
             continue
         config = runfolder.read_config(run)
-        rows = runfolder.read_csv(os.path.join(run, "eval.csv" if evals is None else os.path.join("evals", evals)))
+        name = "eval.csv" if evals is None else os.path.join("evals", evals)
+        logged = runfolder.read_csv(os.path.join(run, name))
+        rows = logged if column == "return" else column_rows(logged, column)
+        if logged and not rows:
+            raise ConfigError(f"{run!r} logs no {column!r} in {name}; its columns: {', '.join(logged[0])}")
         table = eval_table(rows)
         if not table and evals is not None:
             held = sorted(f for f in os.listdir(os.path.join(run, "evals"))
@@ -80,7 +90,7 @@ def load_curves(runs: list[str], labels: list[str] | None = None, evals: str | N
         c = config["config"]
         curves.append({"run": run, "label": labels[i] if labels else default_label(config), "task": c["task"],
                        "agent": c["agent"], "eval_obs": c["eval_obs"], "table": table, "rows": rows,
-                       "config": config})
+                       "config": config, "column": column})
     return curves
 
 
@@ -229,7 +239,8 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None,
     tasks = sorted({c["task"] for c in curves})
     one_seed = any(c["table"][-1]["seeds"] == 1 for c in curves)
     spread = "seeds;\nover episodes for a one-seed run" if one_seed else "seeds"
-    ax.set(xlabel="environment steps", ylabel=f"evaluation return (mean ± std over {spread})",
+    column = curves[0].get("column", "return")
+    ax.set(xlabel="environment steps", ylabel=f"evaluation {column} (mean ± std over {spread})",
            title=title or ", ".join(tasks), ylim=(0, 1000))
     ax.grid(alpha=0.3)
     if outside and metrics:
@@ -290,10 +301,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pool", default=None, metavar="LABEL",
                    help="also one curve LABEL of every run's seeds together, at the steps all runs evaluated "
                    "(runs of one configuration with other master seeds; refused for runs that differ otherwise)")
+    p.add_argument("--eval-column", default="return",
+                   help="eval.csv column to plot (default return: MPPI's; prior_return: the policy prior alone, "
+                   "in runs trained with --eval-prior)")
     args = p.parse_args(argv)
 
     def compare() -> str:
-        curves = load_curves(args.runs, args.labels)
+        curves = load_curves(args.runs, args.labels, column=args.eval_column)
         pooled = [pool_curves(curves, args.pool)] if args.pool is not None else []
         names = [m for m in args.metrics.split(",") if m]
         metrics = metric_series(curves, names) if names else None  # per run (a pooled curve has no train.csv)

@@ -111,8 +111,8 @@ def check_compatible(run: str, saved: TrainConfig, config: TrainConfig) -> None:
     if problems:
         raise ConfigError(f"cannot resume {run} with a changed configuration ({'; '.join(problems)}). Only "
                           "steps, checkpoint_every, keep_checkpoints, devices, name, runs_dir, tensorboard, "
-                          "wandb, compile_cache and overrides that keep the agent's hyperparameters may change; "
-                          "start a new run for anything else")
+                          "wandb, compile_cache, compile_ahead, eval_prior and overrides that keep the agent's "
+                          "hyperparameters may change; start a new run for anything else")
 
 
 def jsonable(value):

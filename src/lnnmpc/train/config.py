@@ -26,10 +26,11 @@ OBS_KEYS = {"noise": "obs_noise", "obs_noise": "obs_noise", "flicker": "flicker"
 TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 # Settings a run may change when it is resumed; everything else must equal the checkpoint's configuration.
+# ``eval_prior`` adds episodes to the evaluations and changes nothing of the training or the planner's returns.
 # ``overrides`` may change as long as the agent's resolved hyperparameters stay those of the checkpoint (checked
 # by lnnmpc.train.compat.check_agent_config), e.g. to pin a default that changed in the code since the run.
 RESUMABLE_CHANGES = ("steps", "name", "runs_dir", "checkpoint_every", "keep_checkpoints", "devices",
-                     "tensorboard", "wandb", "compile_cache", "compile_ahead", "overrides")
+                     "tensorboard", "wandb", "compile_cache", "compile_ahead", "eval_prior", "overrides")
 COMPILE_AHEAD = ("auto", "on", "off")
 
 
@@ -129,6 +130,10 @@ class TrainConfig:
       envs: environments per seed. obs / eval_obs: corruption options for training / evaluation (eval_obs None:
         same as obs).
       eval_every, eval_episodes: evaluation cadence and episodes per seed.
+      eval_prior: every evaluation also plays its episodes (the same initial states and keys) with the policy
+        prior acting alone (``lnnmpc.agents.actor``), in the same compiled program; eval.csv gains a
+        ``prior_return`` column. Off: the evaluation and eval.csv are those of runs before the option. A resumed
+        run may turn it on or off (the training does not depend on it).
       checkpoint_every, keep_checkpoints: checkpoint cadence (also at the end and on Ctrl-C) and how many to keep.
       model_size, small, batch_size, physics, replay_capacity, overrides: agent/loop settings; ``overrides`` goes
         to ``make_agent(..., overrides=...)`` (keys as the agent defines them).
@@ -171,6 +176,7 @@ class TrainConfig:
     wandb: str = ""
     compile_cache: str = dataclasses.field(default_factory=default_compile_cache)
     compile_ahead: str = "auto"
+    eval_prior: bool = False
 
     def __post_init__(self):
         from lnnmpc.agents.registry import AGENTS
@@ -194,8 +200,9 @@ class TrainConfig:
         if self.steps < self.seed_steps:
             raise ConfigError(f"steps ({self.steps}) must be >= seed_steps ({self.seed_steps}): the budget "
                               "includes the random seed phase")
-        if not isinstance(self.small, bool) or not isinstance(self.tensorboard, bool):
-            raise ConfigError("small and tensorboard must be True or False")
+        for name in ("small", "tensorboard", "eval_prior"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if not isinstance(self.wandb, str) or not re.fullmatch(r"[A-Za-z0-9._-]{0,128}", self.wandb):
             raise ConfigError(f"wandb project {self.wandb!r} must be letters, digits, '.', '_' or '-' (at most 128; "
                               "empty turns W&B logging off)")

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from lnnmpc import envs as envs_lib
+from lnnmpc.agents.actor import with_actor
 from lnnmpc.agents.registry import acting_latent
 from lnnmpc.replay import ReplayState, replay_add, replay_init, replay_sample
 
@@ -44,6 +45,9 @@ class LoopConfig:
     optimiser states, 0.72 of the 5.81 ms of cartpole's 8-seed TD-MPC2 update on an H200, benchmark run 27). The
     trainer turns it off when its seed phase provably leaves a window in every stream
     (:func:`windows_after_seed_phase`), which makes the select a no-op.
+
+    ``eval_prior``: :meth:`TrainingLoop.evaluate_logged` also plays the evaluation's episodes with the policy
+    prior acting alone (the agent's ``act_prior``; :func:`lnnmpc.agents.actor.with_actor`).
     """
 
     num_envs: int = 1
@@ -51,14 +55,16 @@ class LoopConfig:
     replay_capacity: int = 100_300
     eval_episodes: int = 10
     guard_empty_replay: bool = True
+    eval_prior: bool = False
 
     def __post_init__(self):
         for name in ("num_envs", "batch_size", "replay_capacity", "eval_episodes"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        if not isinstance(self.guard_empty_replay, bool):
-            raise ValueError(f"guard_empty_replay must be True or False, got {self.guard_empty_replay!r}")
+        for name in ("guard_empty_replay", "eval_prior"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
 
 
 def windows_after_seed_phase(seed_iterations: int, episode_length: int, sequence_length: int,
@@ -92,10 +98,13 @@ class TrainState:
 
 
 class TrainingLoop:
-    """Compiled pieces of training for one agent on one environment (vmap them over seeds)."""
+    """Compiled pieces of training for one agent on one environment (vmap them over seeds).
+
+    Raises ValueError for ``config.eval_prior`` with an agent that has no policy prior (no ``act_prior``)."""
 
     def __init__(self, agent: Any, env: envs_lib.Env, eval_env: envs_lib.Env, config: LoopConfig):
         self.agent, self.env, self.eval_env, self.config = agent, env, eval_env, config
+        self.prior = with_actor(agent, "prior") if config.eval_prior else None  # acts in evaluate_logged
 
     def initial_carries(self, n: int) -> Any:
         """The agent's initial acting carry stacked for ``n`` environments."""
@@ -196,14 +205,33 @@ class TrainingLoop:
         total, z = self._eval_episodes(agent, key, latents=True)  # z: (T, n, N)
         return total, effective_rank(jnp.swapaxes(z, 0, 1))
 
-    def _eval_episodes(self, agent: Any, key: jax.Array, latents: bool) -> tuple[jax.Array, jax.Array | None]:
+    def evaluate_logged(self, agent: Any, key: jax.Array) -> dict[str, jax.Array]:
+        """What the trainer logs of one evaluation, by eval.csv column, each (eval_episodes,): ``return`` and
+        ``effective_rank`` (:meth:`evaluate_with_rank`), and with ``config.eval_prior`` ``prior_return``: the same
+        episodes (the same reset and step keys, so the same initial states) with the policy prior acting alone.
+
+        The prior's episodes are a scan of their own after MPPI's: the planner's computation is that of a loop
+        without ``eval_prior`` (its returns do not move by round-off, which a chaotic episode would amplify, as
+        they did when both shared one scan and one batched physics step), and the prior's is ``evaluate`` of a loop
+        whose agent is ``with_actor(agent, "prior")``."""
+        total, rank = self.evaluate_with_rank(agent, key)
+        columns = {"return": total, "effective_rank": rank}
+        if self.prior is not None:
+            columns["prior_return"] = self._eval_episodes(agent, key, latents=False, actor=self.prior)[0]
+        return columns
+
+    def _eval_episodes(self, agent: Any, key: jax.Array, latents: bool,
+                       actor: Any = None) -> tuple[jax.Array, jax.Array | None]:
+        """Returns (eval_episodes,) and, with ``latents``, the latents (T, eval_episodes, N) of deterministic
+        episodes of the agent state ``agent`` acted by ``actor`` (default the agent itself: MPPI)."""
         n, env = self.config.eval_episodes, self.eval_env
+        acting = self.agent if actor is None else actor
         k_reset, k_act = evaluation_keys(key, n)
         state = jax.vmap(env.reset)(k_reset)
 
         def body(loop_carry, t):
             state, carry, total = loop_carry
-            act = jax.vmap(lambda c, o, dt, kk, f: self.agent.act(agent, c, o, dt, kk, explore=False, first_step=f))
+            act = jax.vmap(lambda c, o, dt, kk, f: acting.act(agent, c, o, dt, kk, explore=False, first_step=f))
             action, carry = act(carry, state.obs, state.dt, evaluation_step_keys(k_act, t), state.t == 0)
             z = acting_latent(self.agent, agent, carry, state.obs) if latents else None
             state = jax.vmap(env.step)(state, action)

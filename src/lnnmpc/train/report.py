@@ -27,10 +27,12 @@ def bar(fraction: float, width: int = 30) -> str:
 class Progress:
     """One live line on stderr: a bar, environment steps (per seed), the speed over the last chunk (environment
     steps per second per seed; evaluation and checkpoint time included, compilation only on the first chunks)
-    and the last evaluation's mean return."""
+    and the last evaluation's mean return, with the policy prior's beside it where it was evaluated
+    (``eval_prior``)."""
 
     def __init__(self, total: int):
         self.total, self.last_eval, self.rate = total, float("nan"), float("nan")
+        self.last_prior = float("nan")
         self._last: tuple[int, float] | None = None
 
     def show(self, done: int) -> None:
@@ -46,8 +48,9 @@ class Progress:
         """The progress line after ``done`` environment steps per seed ("—" for a speed or evaluation not yet
         measured, e.g. during the random seed phase)."""
         number = lambda x, fmt, pad: f"{'—':>{pad}}" if np.isnan(x) else f"{x:{pad}{fmt}}"
+        prior = "" if np.isnan(self.last_prior) else f" (prior {self.last_prior:.1f})"
         return (f"{bar(done / self.total)} {done:>9,}/{self.total:,} env steps  "
-                f"{number(self.rate, '.0f', 8)} steps/s  last eval {number(self.last_eval, '.1f', 7)}")
+                f"{number(self.rate, '.0f', 8)} steps/s  last eval {number(self.last_eval, '.1f', 7)}{prior}")
 
 
 class StepProgress:
@@ -90,6 +93,13 @@ def eval_table(rows: list[dict]) -> list[dict]:
     return table
 
 
+def column_rows(rows: list[dict], column: str) -> list[dict]:
+    """eval.csv ``rows`` with ``column``'s value as their ``return`` (what :func:`eval_table` reads), e.g.
+    ``prior_return``; rows whose cell is empty (evaluations before a resumed run turned ``eval_prior`` on) are
+    left out."""
+    return [{**r, "return": r[column]} for r in rows if r.get(column) not in (None, "")]
+
+
 def seed_finals(table: list[dict]) -> str | None:
     """One line: each seed's mean at the last evaluation beside its own best evaluation, so that one seed falling
     at the end (and pulling the mean down) stands out; None for a single seed or no evaluation."""
@@ -102,8 +112,9 @@ def seed_finals(table: list[dict]) -> str | None:
     return "Per seed at the last evaluation: " + ", ".join(parts) + "."
 
 
-def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str) -> None:
-    """Writes curve.png: mean ± std of the evaluation return against environment steps, reference lines."""
+def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str, prior: list[dict] = ()) -> None:
+    """Writes curve.png: mean ± std of the evaluation return against environment steps, reference lines, and
+    ``prior`` (:func:`eval_table` of the ``prior_return`` column, where the run logs it) as a dashed curve."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -113,8 +124,14 @@ def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str) 
     mean, std = np.asarray([t["mean"] for t in table]), np.asarray([t["std"] for t in table])
     over = "seeds" if table and table[-1]["seeds"] > 1 else "episodes"
     fig, ax = plt.subplots(figsize=(6.4, 4))
-    ax.plot(steps, mean, marker="o", markersize=3, label=f"this run (mean ± std over {over})")
+    ax.plot(steps, mean, marker="o", markersize=3,
+            label=f"this run{', MPPI' if prior else ''} (mean ± std over {over})")
     ax.fill_between(steps, mean - std, mean + std, alpha=0.25)
+    if prior:
+        steps, mean = [t["env_step"] for t in prior], np.asarray([t["mean"] for t in prior])
+        std = np.asarray([t["std"] for t in prior])
+        line, = ax.plot(steps, mean, linestyle="--", marker="o", markersize=3, label="the policy prior alone")
+        ax.fill_between(steps, mean - std, mean + std, alpha=0.15, color=line.get_color())
     for (label, value), style in zip(refs.items(), ("--", ":"), strict=False):
         ax.axhline(value, linestyle=style, color="gray" if style == "--" else "black", linewidth=1,
                    label=f"{label}: {value:.0f}")
@@ -214,8 +231,9 @@ def _agent_size(c: dict) -> str:
 LAST_EVALUATIONS = 3  # summary.md's mean over the latest evaluations
 
 
-def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, float], extra: dict) -> str:
-    """The one-screen summary.md of a run."""
+def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, float], extra: dict,
+                 prior: list[dict] = ()) -> str:
+    """The one-screen summary.md of a run (``prior``: :func:`eval_table` of its ``prior_return`` column, if any)."""
     c = config["config"]
     obs = ", ".join(f"{k}={v}" for k, v in c["obs"].items()) or "none"
     eval_obs = ", ".join(f"{k}={v}" for k, v in c["eval_obs"].items()) or "none"
@@ -237,6 +255,9 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
         last, best = table[-1], max(table, key=lambda t: t["mean"])
         lines += [f"**Final return {last['mean']:.1f} ± {last['std']:.1f}** at {last['env_step']:,} env steps "
                   f"(best {best['mean']:.1f} at {best['env_step']:,}).", ""]
+        if prior:
+            lines += [f"The policy prior alone on the same episodes: {prior[-1]['mean']:.1f} ± {prior[-1]['std']:.1f} "
+                      f"at {prior[-1]['env_step']:,} env steps (best {max(t['mean'] for t in prior):.1f}).", ""]
         per_seed = seed_finals(table)
         if per_seed:
             lines += [per_seed, ""]
@@ -265,7 +286,7 @@ def write_reports(run: str, extra: dict | None = None, plots: bool = True) -> No
     config = runfolder.read_config(run)
     c = config["config"]
     eval_rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
-    table = eval_table(eval_rows)
+    table, prior = eval_table(eval_rows), eval_table(column_rows(eval_rows, "prior_return"))
     refs = references(c["task"], c["agent"], c["eval_obs"])
     if plots:
         try:
@@ -274,19 +295,20 @@ def write_reports(run: str, extra: dict | None = None, plots: bool = True) -> No
             sys.stderr.write("matplotlib is not installed: no curve.png\n")
         else:
             if table:
-                plot_curve(run, table, refs, f"{c['task']} · {c['agent']}")
+                plot_curve(run, table, refs, f"{c['task']} · {c['agent']}", prior)
             plot_training(run, runfolder.read_csv(os.path.join(run, "train.csv")), f"{c['task']} · {c['agent']}",
                           eval_rows)
-    runfolder.write_text(os.path.join(run, "summary.md"), summary_text(run, config, table, refs, extra or {}))
+    runfolder.write_text(os.path.join(run, "summary.md"), summary_text(run, config, table, refs, extra or {}, prior))
 
 
 def eval_scalars(rows: list[dict]) -> dict[str, float]:
     """One evaluation's rows (all seeds and episodes) -> the scalars the loggers plot: return mean and std, and
-    the mean effective rank where the rows carry it."""
+    the mean effective rank and policy prior's return where the rows carry them."""
     scalars = {"eval/return_mean": float(np.mean([r["return"] for r in rows])),
                "eval/return_std": float(np.std([r["return"] for r in rows]))}
-    if "effective_rank" in rows[0]:
-        scalars["eval/effective_rank_mean"] = float(np.mean([r["effective_rank"] for r in rows]))
+    for name in ("effective_rank", "prior_return"):
+        if name in rows[0]:
+            scalars[f"eval/{name}_mean"] = float(np.mean([r[name] for r in rows]))
     return scalars
 
 

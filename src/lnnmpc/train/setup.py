@@ -88,10 +88,13 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
         raise ConfigError(f"replay_capacity={capacity} is below the training window ({agent.sequence_length})")
     seeded = schedule.seed_iterations(config.seed_steps, config.envs * env.action_repeat)
     guard = not windows_after_seed_phase(seeded, env.episode_length, agent.sequence_length, capacity)
-    return TrainingLoop(agent, env, eval_env, LoopConfig(num_envs=config.envs, batch_size=config.batch_size,
-                                                         replay_capacity=capacity,
-                                                         eval_episodes=config.eval_episodes,
-                                                         guard_empty_replay=guard))
+    loop_config = LoopConfig(num_envs=config.envs, batch_size=config.batch_size, replay_capacity=capacity,
+                             eval_episodes=config.eval_episodes, guard_empty_replay=guard,
+                             eval_prior=config.eval_prior)
+    try:
+        return TrainingLoop(agent, env, eval_env, loop_config)
+    except ValueError as error:  # eval_prior with an agent that has no policy prior
+        raise ConfigError(f"eval_prior: {error}") from None
 
 
 def validate(config: TrainConfig | None = None, *, resume: str | None = None, steps: int | None = None,

@@ -52,6 +52,9 @@ from lnnmpc.train.sharding import AheadOfTime, SeedPlacement, compile_ahead
 
 TIMING_FILE = "timing.csv"  # wall seconds of each phase (kept apart from train.csv, which is deterministic)
 COMPILE_FILE = "compile.csv"  # seconds to lower and compile each program compiled ahead
+# eval.csv's columns after env_step, seed and episode, in order (TrainingLoop.evaluate_logged; prior_return only
+# with eval_prior)
+EVAL_COLUMNS = ("return", "effective_rank", "prior_return")
 
 
 class TrainingDiverged(RuntimeError):
@@ -79,7 +82,7 @@ class _Run:
         self.placement = SeedPlacement(setup.num_devices)
         compile_ = self.placement.compile
         self.init = compile_(self.loop.init)
-        self.evaluate = compile_(self.loop.evaluate_with_rank)
+        self.evaluate = compile_(self.loop.evaluate_logged)
         self.finite = compile_(all_finite)
         self._chunk_fns = {}
         self.counters = {"env_steps": 0, "next_eval": self.config.eval_every, "last_eval": -1,
@@ -284,12 +287,15 @@ class _Run:
         eval_key, key = jax.random.split(jax.random.wrap_key_data(jnp.asarray(n["eval_key"], jnp.uint32)))
         n["eval_key"], n["last_eval"] = _key_list(eval_key), n["env_steps"]
         keys = self.placement.put(jax.random.split(key, self.config.seeds))
-        returns, ranks = (np.asarray(x) for x in self.evaluate(self.ts.agent, keys))  # (seeds, episodes) each
-        rows = [{"env_step": n["env_steps"], "seed": s, "episode": e, "return": float(returns[s, e]),
-                 "effective_rank": float(ranks[s, e])}
-                for s in range(returns.shape[0]) for e in range(returns.shape[1])]
+        values = {k: np.asarray(v) for k, v in self.evaluate(self.ts.agent, keys).items()}  # (seeds, episodes)
+        columns = [name for name in EVAL_COLUMNS if name in values]
+        seeds, episodes = values["return"].shape
+        rows = [{"env_step": n["env_steps"], "seed": s, "episode": e,
+                 **{name: float(values[name][s, e]) for name in columns}}
+                for s in range(seeds) for e in range(episodes)]
         runfolder.append_csv(os.path.join(self.run, "eval.csv"), rows)
-        self.progress.last_eval = float(returns.mean())
+        self.progress.last_eval = float(values["return"].mean())
+        self.progress.last_prior = float(values["prior_return"].mean()) if "prior_return" in values else np.nan
         for logger in self.loggers:
             logger.eval_rows(rows)
         report.write_reports(self.run, self.counters)
