@@ -48,13 +48,13 @@ eval: $(STAMP)
 		$(if $(filter command line,$(origin OBS)),--obs "$(OBS)") $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
 		$(if $(ACTOR),--actor $(ACTOR))
 
-# make video RUN=<run folder> [OUT=episode.mp4|.gif] [CHECKPOINT=...]  (offscreen OpenGL: Mesa EGL by default)
+# make video RUN=<run folder> [OUT=episode.mp4|.gif] [CHECKPOINT=...] [ACTOR=prior]  (offscreen OpenGL: Mesa EGL by default)
 # [FILMS=N [FALLS=R]]: N episodes into a folder, keeping those whose return ended below R
 OUT ?=
 video: $(STAMP)
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m lnnmpc.train.cli video "$(RUN)" $(if $(OUT),--out "$(OUT)") \
 		$(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) $(if $(FILMS),--episodes $(FILMS)) \
-		$(if $(FALLS),--falls-below $(FALLS))
+		$(if $(FALLS),--falls-below $(FALLS)) $(if $(ACTOR),--actor $(ACTOR))
 
 # make report RUN=<run folder>: redraw curve.png and summary.md
 report: $(STAMP)

@@ -401,6 +401,20 @@ def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache):
     frames = [np.frombuffer(f, np.uint8).reshape(72, 96, 3) for f in reader]
     assert meta["size"] == (96, 72) and len(frames) == 12
     assert frames[-1][40:].std() > 5  # a rendered scene below the text band, not a blank image
+    # the policy prior alone on the same episode: its own default file, the same first picture, other actions
+    prior = _run(["video", str(reference), "--actor", "prior", "--max-steps", "12", "--width", "96",
+                  "--height", "72"], cache, MUJOCO_GL="egl")
+    assert prior.returncode == 0, prior.stderr[-3000:]
+    path = reference / "videos" / "2804-prior.mp4"
+    assert f"12 frames at 50 fps -> {path}" in prior.stdout
+    reader = imageio_ffmpeg.read_frames(str(path))
+    next(reader)
+    prior_frames = [np.frombuffer(f, np.uint8).reshape(72, 96, 3).astype(int) for f in reader]
+    assert len(prior_frames) == 12
+    first, last = (np.abs(prior_frames[i][40:] - frames[i][40:]).mean() for i in (0, -1))
+    assert 0 < first < 3 and last > 1.5 * first  # one initial state (2.2 here), then the prior's actions (4.8)
+    bad = _run(["video", str(reference), "--actor", "mpc"], cache)
+    assert bad.returncode == 2 and "unknown actor 'mpc'; known: planner, prior" in bad.stderr
 
 
 def test_video_films_many_episodes_into_a_folder_and_keeps_the_falls(reference, tmp_path, cache):

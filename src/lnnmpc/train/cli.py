@@ -102,6 +102,8 @@ def _video_parser(sub) -> None:
                         "--out or <run>/videos/<step>/, as episode-<e>.mp4")
     p.add_argument("--falls-below", type=float, default=None,
                    help="with --episodes: keep only the films of episodes whose return ends below this")
+    p.add_argument("--actor", default="planner",
+                   help="planner (MPPI) or prior (the policy prior alone; default file <run>/videos/<step>-prior.mp4)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -176,7 +178,8 @@ def run_command(args: argparse.Namespace) -> None:
         from lnnmpc.train.video import record, record_episodes
 
         options = dict(out=args.out, obs=args.obs, checkpoint=args.checkpoint, seed_index=args.seed_index,
-                       episode_seed=args.episode_seed, width=args.width, height=args.height, max_steps=args.max_steps)
+                       episode_seed=args.episode_seed, width=args.width, height=args.height, max_steps=args.max_steps,
+                       actor=args.actor)
         if args.episodes == 1 and args.falls_below is None:
             record(args.run, **options)
         else:

@@ -133,6 +133,14 @@ def mjx_evaluator(agent, env, episodes: int, seeds: int):
     return run
 
 
+def require_actor(actor: str) -> None:
+    """:func:`lnnmpc.agents.actor.check_actor` as a :class:`ConfigError` (the CLI's exit 2), naming the actors."""
+    try:
+        check_actor(actor)
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+
+
 def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, backend: str = "mjx",
              checkpoint: int | None = None, seed: int = 0, out: str | None = None, actor: str = "planner",
              verbose: bool = True) -> EvalResult:
@@ -146,10 +154,7 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
     require_int("episodes", episodes, 1)
-    try:  # before anything loads
-        check_actor(actor)
-    except ValueError as error:
-        raise ConfigError(str(error)) from None
+    require_actor(actor)  # before anything loads
     config = runfolder.saved_config(run)
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     step = choose_checkpoint(run, checkpoint)

@@ -1,5 +1,6 @@
 """``make video RUN=<folder>``: one evaluation episode rendered offscreen to MP4 or GIF, with the return overlaid;
-``make video RUN=<folder> FILMS=N FALLS=R``: N episodes at once, keeping the films of those that ended below R.
+``make video RUN=<folder> FILMS=N FALLS=R``: N episodes at once, keeping the films of those that ended below R;
+``ACTOR=prior``: the policy prior acts alone instead of the MPPI planner (:mod:`lnnmpc.agents.actor`).
 
 The episode runs on dm_control's simulator (:mod:`lnnmpc.train.dm_backend`, the simulator a policy trained on
 MJX must transfer to) with the run's evaluation corruptions; after every agent step MuJoCo's renderer draws the
@@ -18,8 +19,9 @@ import jax
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
+from lnnmpc.agents.actor import with_actor
 from lnnmpc.train.config import ConfigError, parse_obs, require_int
-from lnnmpc.train.evaluate import check_observation_size, load_policy
+from lnnmpc.train.evaluate import check_observation_size, load_policy, require_actor
 
 FORMATS = ("mp4", "gif")
 
@@ -92,21 +94,24 @@ class _EpisodeWriters:
 def record_episodes(run: str, *, episodes: int, below: float | None = None, out: str | None = None,
                     obs: str | dict | None = None, checkpoint: int | None = None, seed_index: int = 0,
                     episode_seed: int = 0, width: int = 320, height: int = 240, max_steps: int | None = None,
-                    camera: int = 0) -> dict[int, tuple[float, str]]:
+                    camera: int = 0, actor: str = "planner") -> dict[int, tuple[float, str]]:
     """Films ``episodes`` deterministic episodes of seed ``seed_index``'s policy at once (episode e starts from
     dm_control's initial state ``episode_seed + e``) into ``out`` (a folder, default
-    ``<run>/videos/<checkpoint>/``) as ``episode-<e>.mp4``, and keeps the films of the episodes whose return
-    ends below ``below`` (all with None): the falls of a walker among many episodes. Returns {episode: (return,
-    path)} of the films kept."""
+    ``<run>/videos/<checkpoint>/``, ``<checkpoint>-prior/`` when the prior acts) as ``episode-<e>.mp4``, and
+    keeps the films of the episodes whose return ends below ``below`` (all with None): the falls of a walker
+    among many episodes. ``actor``: "planner" (MPPI) or "prior" (the policy prior alone). Returns {episode:
+    (return, path)} of the films kept."""
     require_int("episodes", episodes, 1)
+    require_actor(actor)
     policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
-    folder = out or os.path.join(run, "videos", str(policy.checkpoint))
+    folder = out or os.path.join(run, "videos", _film_name(policy.checkpoint, actor))
     if os.path.splitext(folder)[1].lower().lstrip(".") in FORMATS:
         raise ConfigError(f"filming several episodes (--episodes, --falls-below) writes into a folder, not the "
                           f"file {folder!r}")
     writers = _EpisodeWriters(folder, episodes, _fps(env))
     try:
-        returns = _play(policy, env, state, seed_index, episodes, episode_seed, width, height, camera, writers.send)
+        returns = _play(policy, env, state, seed_index, episodes, episode_seed, width, height, camera, writers.send,
+                        actor)
     finally:
         writers.close()
     kept = keep_films(returns[0], writers.paths, below)
@@ -147,10 +152,17 @@ def _policy_and_env(run, obs, checkpoint, seed_index, max_steps):
     return policy, env, jax.tree_util.tree_map(lambda x: x[seed_index:seed_index + 1], policy.agent_state)
 
 
-def _play(policy, env, state, seed_index, episodes, episode_seed, width, height, camera, send) -> np.ndarray:
-    """Plays the episodes on dm_control, sending each agent step's overlaid frame as ``send(episode, frame)``;
-    returns the returns (1, episodes). Episode e is the one ``evaluate(run, backend="dm_control",
-    seed=episode_seed)`` scores for seed ``seed_index`` as episode e (:func:`dm_backend.episode_keys`)."""
+def _film_name(checkpoint: int, actor: str) -> str:
+    """A film's default name (no extension) under ``<run>/videos/``: the checkpoint, ``-prior`` when the prior acts."""
+    return str(checkpoint) if actor == "planner" else f"{checkpoint}-{actor}"
+
+
+def _play(policy, env, state, seed_index, episodes, episode_seed, width, height, camera, send,
+          actor: str) -> np.ndarray:
+    """Plays the episodes on dm_control with ``actor`` choosing the actions, sending each agent step's overlaid
+    frame as ``send(episode, frame)``; returns the returns (1, episodes). Episode e is the one ``evaluate(run,
+    backend="dm_control", seed=episode_seed, actor=actor)`` scores for seed ``seed_index`` as episode e
+    (:func:`dm_backend.episode_keys`)."""
     from lnnmpc.train.dm_backend import run_episodes
     from lnnmpc.train.report import StepProgress
 
@@ -158,28 +170,32 @@ def _play(policy, env, state, seed_index, episodes, episode_seed, width, height,
 
     def on_step(_, episode, step, physics, total):
         frame = physics.render(height=height, width=width, camera_id=camera)
-        lines = [f"{config.task} | {config.agent} | {policy.checkpoint:,} env steps",
+        acting = "" if actor == "planner" else f" | {actor} alone"
+        lines = [f"{config.task} | {config.agent}{acting} | {policy.checkpoint:,} env steps",
                  f"step {step:3d}  return {total:6.1f}"]
         send(episode, overlay(frame, lines))
 
-    return run_episodes(env, policy.loop.agent, state, episodes, jax.random.key(episode_seed), seed=episode_seed,
-                        seed_ids=[seed_index], on_step=on_step,
+    return run_episodes(env, with_actor(policy.loop.agent, actor), state, episodes, jax.random.key(episode_seed),
+                        seed=episode_seed, seed_ids=[seed_index], on_step=on_step,
                         progress=StepProgress(f"agent steps of {episodes} film(s)"))
 
 
 def record(run: str, *, out: str | None = None, obs: str | dict | None = None, checkpoint: int | None = None,
            seed_index: int = 0, episode_seed: int = 0, width: int = 320, height: int = 240,
-           max_steps: int | None = None, camera: int = 0) -> str:
-    """Renders one deterministic episode of seed ``seed_index``'s policy; returns the video path.
+           max_steps: int | None = None, camera: int = 0, actor: str = "planner") -> str:
+    """Renders one deterministic episode of seed ``seed_index``'s policy, ``actor`` ("planner" or "prior")
+    choosing its actions; returns the video path.
 
-    ``out`` defaults to ``<run>/videos/<checkpoint>.mp4``. ``max_steps`` cuts the episode (agent steps).
+    ``out`` defaults to ``<run>/videos/<checkpoint>.mp4`` (``<checkpoint>-prior.mp4`` when the prior acts).
+    ``max_steps`` cuts the episode (agent steps).
     """
+    require_actor(actor)
     policy, env, state = _policy_and_env(run, obs, checkpoint, seed_index, max_steps)
     frames = []
     returns = _play(policy, env, state, seed_index, 1, episode_seed, width, height, camera,
-                    lambda _, frame: frames.append(frame))
+                    lambda _, frame: frames.append(frame), actor)
     fps = _fps(env)
-    path = encode(frames, out or os.path.join(run, "videos", f"{policy.checkpoint}.mp4"), fps)
+    path = encode(frames, out or os.path.join(run, "videos", _film_name(policy.checkpoint, actor) + ".mp4"), fps)
     sys.stdout.write(f"episode return {returns[0, 0]:.1f}; {len(frames)} frames at {fps:g} fps -> {path}\n")
     return path
 
