@@ -307,6 +307,13 @@ def test_compare_plots_the_policy_priors_returns_of_runs_that_log_them(tmp_path,
     assert main([a, b, "--eval-column", "prior_return", "--out", out]) == 2
     assert f"{b!r} logs no 'prior_return' in eval.csv; its columns: env_step, seed, episode, return" in (
         capsys.readouterr().err)
+    from lnnmpc.train.tables import main as tables_main
+
+    assert tables_main([a, "--labels", "A", "--returns-only", "--eval-column", "prior_return"]) == 0
+    table = capsys.readouterr().out
+    assert "| 20,000 | 100.0 ± 50.0 |" in table and "10,000" not in table and "650.0" not in table
+    assert tables_main([a, b, "--returns-only", "--eval-column", "prior_return"]) == 2
+    assert f"{b!r} logs no 'prior_return'" in capsys.readouterr().err
     for run in (a, b):
         report.write_reports(run)  # curve.png: a dashed curve of the prior where the run logs it
         assert os.path.getsize(os.path.join(run, "curve.png")) > 10_000

@@ -114,7 +114,7 @@ still_running() {
 print_report() {
     echo "=== $(date -u +%T) ($(($(date +%s) - $(cat $BATCH/started))) s since start)"
     for log in "$BATCH"/*.log; do
-        printf '%-34s %s\n' "$(basename "$log" .log)" "$(tr '\r' '\n' <"$log" | grep '^\[' | tail -1 | cut -c1-110)"
+        printf '%-34s %s\n' "$(basename "$log" .log)" "$(tr '\r' '\n' <"$log" | grep '^\[' | tail -1 | cut -c1-130)"
         tr '\r' '\n' <"$log" | grep -v -E '^\s*$|^\[' | tail -1 | cut -c1-150
         local ended=${log%.log}
         [ -f "$ended.seconds" ] && echo "ended (exit $(cat "$ended.rc" 2>/dev/null)) $(cat "$ended.seconds") s after its launch"

@@ -6,6 +6,7 @@
     python -m lnnmpc.train.tables runs/seed0 runs/seed1 runs/seed2 --pool "3 seeds"  # one-seed runs as one
     python -m lnnmpc.train.tables runs/a0+runs/a1 runs/b0+runs/b1 --labels A B       # two pooled columns
     python -m lnnmpc.train.tables runs/s0+runs/s1 --evals dm_control-clean-200192.csv --falls-below 400
+    python -m lnnmpc.train.tables runs/a --returns-only --eval-column prior_return  # the prior alone (--eval-prior)
 
 Returns (from each ``eval.csv``): one row per evaluation step, and per run the mean ± std over all seeds × episodes,
 the std over the seeds' means, and the seeds' means (rounded), then the mean of the last 3 evaluations. A run that
@@ -158,12 +159,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--evals", default=None, metavar="NAME",
                    help="read each run's evals/NAME (written by `cli eval`, e.g. dm_control-clean-200192.csv) "
                    "instead of eval.csv")
+    p.add_argument("--eval-column", default="return",
+                   help="eval.csv column to tabulate (default return: MPPI's; prior_return: the policy prior alone, "
+                   "in runs trained with --eval-prior)")
     args = p.parse_args(argv)
     if args.falls_below is not None and not np.isfinite(args.falls_below):
         p.error(f"--falls-below needs a finite return, got {args.falls_below}")
 
     def tables() -> str:
-        curves = load_curves(args.runs, args.labels, args.evals)  # checks folders and labels; each config.json once
+        # (checks folders and labels; each config.json read once)
+        curves = load_curves(args.runs, args.labels, args.evals, args.eval_column)
         pooled = [pool_curves(curves, args.pool)] if args.pool is not None else []
         only = args.returns_only or args.speed_only or args.commands_only
         parts = [returns_table(curves + pooled)] if args.returns_only or not only else []
