@@ -299,10 +299,12 @@ def test_compare_plots_the_policy_priors_returns_of_runs_that_log_them(tmp_path,
     out = str(tmp_path / "prior.png")
     assert main([a, "--eval-column", "prior_return", "--out", out]) == 0
     with open(str(tmp_path / "prior.csv")) as f:
-        assert [(r["env_step"], float(r["mean"])) for r in csv.DictReader(f)] == [("20000", 100.0)]
+        assert [(r["column"], r["env_step"], float(r["mean"])) for r in csv.DictReader(f)] == [
+            ("prior_return", "20000", 100.0)]
     assert main([a, "--out", out]) == 0  # MPPI's returns, as before
     with open(str(tmp_path / "prior.csv")) as f:
-        assert [(r["env_step"], float(r["mean"])) for r in csv.DictReader(f)] == [("10000", 200.0), ("20000", 650.0)]
+        assert [(r["column"], r["env_step"], float(r["mean"])) for r in csv.DictReader(f)] == [
+            ("return", "10000", 200.0), ("return", "20000", 650.0)]
     b = _run(tmp_path / "b", "tdmpc2", {10000: [[1.0]]})
     assert main([a, b, "--eval-column", "prior_return", "--out", out]) == 2
     assert f"{b!r} logs no 'prior_return' in eval.csv; its columns: env_step, seed, episode, return" in (

@@ -6,7 +6,8 @@
 Each run folder's ``eval.csv`` becomes one curve: mean over seeds of each seed's episode mean, shaded ± std over
 seeds (over episodes for a one-seed run), as in the run's own ``curve.png``. Where all runs share a task and
 evaluation corruption, the thesis's final returns for their agents are drawn as horizontal reference lines.
-A CSV beside the figure (same name, ``.csv``) holds the plotted numbers: run, label, env_step, mean, std, seeds.
+A CSV beside the figure (same name, ``.csv``) holds the plotted numbers: run, label, column (the eval.csv column
+plotted: ``return``, or ``prior_return`` with ``--eval-column``), env_step, mean, std, seeds.
 
 ``--metrics value_loss,reward_loss`` adds one panel per ``train.csv`` metric beside the returns: per run, the
 median over seeds of the metric at each logged step, shaded between the seeds' minimum and maximum; log scale
@@ -232,8 +233,9 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None,
                         label=f"{curve['label']} ({seeds} seed{'s' if seeds != 1 else ''})")
         colors[curve["run"], curve["label"]] = line.get_color()
         ax.fill_between(steps, mean - std, mean + std, alpha=0.2, color=line.get_color())
-        rows += [{"run": curve["run"], "label": curve["label"], "env_step": t["env_step"], "mean": t["mean"],
-                  "std": t["std"], "seeds": t["seeds"]} for t in curve["table"]]
+        rows += [{"run": curve["run"], "label": curve["label"], "column": curve.get("column", "return"),
+                  "env_step": t["env_step"], "mean": t["mean"], "std": t["std"], "seeds": t["seeds"]}
+                 for t in curve["table"]]
     for label, value, style in lines:
         ax.axhline(value, linestyle=style, color="gray", linewidth=1, label=f"{label}: {value:.0f}")
     tasks = sorted({c["task"] for c in curves})

@@ -16,7 +16,7 @@ import re
 import jax
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.config import ConfigError, TrainConfig, incompatibilities
+from lnnmpc.train.config import RESUMABLE_CHANGES, ConfigError, TrainConfig, incompatibilities
 from lnnmpc.train.loop import TrainingLoop
 
 
@@ -109,10 +109,10 @@ def check_compatible(run: str, saved: TrainConfig, config: TrainConfig) -> None:
     """Refuses a configuration that differs from the saved one in more than :data:`RESUMABLE_CHANGES`."""
     problems = incompatibilities(saved, config)
     if problems:
+        changeable = ", ".join(name for name in RESUMABLE_CHANGES if name != "overrides")
         raise ConfigError(f"cannot resume {run} with a changed configuration ({'; '.join(problems)}). Only "
-                          "steps, checkpoint_every, keep_checkpoints, devices, name, runs_dir, tensorboard, "
-                          "wandb, compile_cache, compile_ahead, eval_prior and overrides that keep the agent's "
-                          "hyperparameters may change; start a new run for anything else")
+                          f"{changeable} and overrides that keep the agent's hyperparameters may change; start a "
+                          "new run for anything else")
 
 
 def jsonable(value):
