@@ -18,31 +18,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc.agents.registry import acting_latent
-from lnnmpc.train.loop import evaluation_keys, evaluation_step_keys
+from lnnmpc.train.loop import play_episodes
 
 
 @functools.lru_cache(maxsize=8)
 def rollout_program(agent, env, episodes: int, steps: int | None = None):
     """The compiled ``(state, key) -> records`` of :func:`rollout` (time-major leaves (T, E, ...)); the agent
-    state is an argument, so one compilation serves every checkpoint of a run."""
-    n = episodes
-
-    def body(state, k_act, loop_carry, t):
-        s, carry = loop_carry
-        act = jax.vmap(lambda c, o, dt, kk, f: agent.act(state, c, o, dt, kk, explore=False, first_step=f))
-        action, carry = act(carry, s.obs, s.dt, evaluation_step_keys(k_act, t), s.t == 0)
-        nxt = jax.vmap(env.step)(s, action)
-        record = {"latent": acting_latent(agent, state, carry, s.obs), "obs": s.obs, "clean_obs": s.clean_obs,
-                  "qpos": s.physics.qpos, "qvel": s.physics.qvel, "action": action, "dt": s.dt,
-                  "reward": nxt.reward}
-        return (nxt, carry), record
+    state is an argument, so one compilation serves every checkpoint of a run. The episodes are the trainer's
+    evaluation's (:func:`lnnmpc.train.loop.play_episodes`): the same key plays the same episodes."""
 
     def episodes_from(state, key):  # reset and scan in one compiled program (eager MJX resets are slow)
-        carries = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), agent.initial_carry())
-        k_reset, k_act = evaluation_keys(key, n)  # the trainer's evaluation: the same key plays the same episodes
-        env_state = jax.vmap(env.reset)(k_reset)
-        return jax.lax.scan(functools.partial(body, state, k_act), (env_state, carries),
-                            jnp.arange(steps or env.episode_length))[1]
+        def record(s, carry, action, nxt):
+            return {"latent": acting_latent(agent, state, carry, s.obs), "obs": s.obs, "clean_obs": s.clean_obs,
+                    "qpos": s.physics.qpos, "qvel": s.physics.qvel, "action": action, "dt": s.dt,
+                    "reward": nxt.reward}
+
+        return play_episodes(agent, state, env, key, episodes, steps, record)[1]
 
     return jax.jit(episodes_from)
 

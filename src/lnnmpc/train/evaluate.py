@@ -120,9 +120,9 @@ def _restored(policy: Policy, run: str) -> Policy:
 def mjx_evaluator(agent, env, episodes: int, seeds: int):
     """A compiled evaluation of ``episodes`` deterministic episodes per seed on MJX ``env``, acting with
     ``agent.act`` (MPPI; the prior alone under :func:`lnnmpc.agents.actor.with_actor`): returns
-    ``run(agent_state, key) -> (seeds, episodes)`` returns, the seeds' keys split from ``key``. With the planner
-    the program is the trainer's for the same settings (a compilation-cache hit); call ``run`` for as many agent
-    states as needed."""
+    ``run(agent_state, key) -> (seeds, episodes)`` returns, the seeds' keys split from ``key``; the episodes are
+    those the trainer's evaluations play with the same key (:func:`lnnmpc.train.loop.play_episodes`). Call ``run``
+    for as many agent states as needed."""
     placement = SeedPlacement(1)
     program = placement.compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=episodes)).evaluate)
 

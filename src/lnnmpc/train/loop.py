@@ -224,22 +224,36 @@ class TrainingLoop:
                        actor: Any = None) -> tuple[jax.Array, jax.Array | None]:
         """Returns (eval_episodes,) and, with ``latents``, the latents (T, eval_episodes, N) of deterministic
         episodes of the agent state ``agent`` acted by ``actor`` (default the agent itself: MPPI)."""
-        n, env = self.config.eval_episodes, self.eval_env
-        acting = self.agent if actor is None else actor
-        k_reset, k_act = evaluation_keys(key, n)
-        state = jax.vmap(env.reset)(k_reset)
+        record = (lambda s, carry, action, nxt: acting_latent(self.agent, agent, carry, s.obs)) if latents else None
+        return play_episodes(self.agent if actor is None else actor, agent, self.eval_env, key,
+                             self.config.eval_episodes, record=record)
 
-        def body(loop_carry, t):
-            state, carry, total = loop_carry
-            act = jax.vmap(lambda c, o, dt, kk, f: acting.act(agent, c, o, dt, kk, explore=False, first_step=f))
-            action, carry = act(carry, state.obs, state.dt, evaluation_step_keys(k_act, t), state.t == 0)
-            z = acting_latent(self.agent, agent, carry, state.obs) if latents else None
-            state = jax.vmap(env.step)(state, action)
-            return (state, carry, total + state.reward), z
 
-        steps = jnp.arange(env.episode_length)
-        (_, _, total), z = jax.lax.scan(body, (state, self.initial_carries(n), jnp.zeros((n,))), steps)
-        return total, z
+def play_episodes(acting: Any, agent_state: Any, env: envs_lib.Env, key: jax.Array, episodes: int,
+                  steps: int | None = None, record: Any = None) -> tuple[jax.Array, Any]:
+    """``episodes`` deterministic episodes (no exploration noise) of ``acting`` (an agent, or one under
+    :func:`lnnmpc.agents.actor.with_actor`) with state ``agent_state``, in parallel, for ``steps`` agent steps
+    (default the whole episode); episode i's reset and acting keys from ``fold_in(key, i)``
+    (:func:`evaluation_keys`), as every evaluation of the trainer plays them.
+
+    Returns each episode's return (episodes,) and what ``record(state, carry, action, next_state)`` gives at each
+    step, stacked time-major (T, episodes, ...) (None without ``record``): ``state`` the environments' states
+    (episodes,) before the step, ``carry`` the acting carries after acting on ``state.obs``."""
+    k_reset, k_act = evaluation_keys(key, episodes)
+    env_state = jax.vmap(env.reset)(k_reset)
+    carries = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (episodes, *jnp.shape(x))),
+                                     acting.initial_carry())
+
+    def body(loop_carry, t):
+        s, carry, total = loop_carry
+        act = jax.vmap(lambda c, o, dt, kk, f: acting.act(agent_state, c, o, dt, kk, explore=False, first_step=f))
+        action, carry = act(carry, s.obs, s.dt, evaluation_step_keys(k_act, t), s.t == 0)
+        nxt = jax.vmap(env.step)(s, action)
+        return (nxt, carry, total + nxt.reward), (None if record is None else record(s, carry, action, nxt))
+
+    (_, _, total), records = jax.lax.scan(body, (env_state, carries, jnp.zeros((episodes,))),
+                                          jnp.arange(steps or env.episode_length))
+    return total, records
 
 
 def evaluation_keys(key: jax.Array, episodes: int) -> tuple[jax.Array, jax.Array]:
