@@ -1,6 +1,7 @@
 """Study grids, resume decisions and aggregation of lnnmpc.experiments, on fake run folders (no training)."""
 
 import csv
+import dataclasses
 import os
 
 import numpy as np
@@ -121,6 +122,21 @@ def test_eval_cadence_applies_to_new_runs_and_existing_runs_keep_their_own(tmp_p
     assert trained == [20_000]
     with pytest.raises(ConfigError, match="eval_every must be an integer >= 1, got 0"):
         grid.GridOptions(eval_every=0)
+
+
+def test_eval_prior_reaches_every_run_of_a_study(tmp_path, monkeypatch):
+    """``--eval-prior``: each run's training-time evaluations also play the policy prior alone; off by default."""
+    options = grid.GridOptions(runs_dir=str(tmp_path), steps=50_000, agents=("tdmpc2", "cfc-zp-det"))
+    assert not any(s.config.eval_prior for s in grid.expand(grid.get_study("table5_5"), options))
+    prior = dataclasses.replace(options, eval_prior=True)
+    assert all(s.config.eval_prior for s in grid.expand(grid.get_study("table5_5"), prior))
+    trained = []
+    monkeypatch.setattr(lnnmpc, "train", lambda config: trained.append((config.agent, config.eval_prior)))
+    assert run.main(["table5_5", "--steps", "50000", "--agents", "tdmpc2,cfc-zp-det", "--eval-prior", "--runs-dir",
+                     str(tmp_path), "--out", str(tmp_path / "out")]) == 0
+    assert trained and all(on for _, on in trained) and {a for a, _ in trained} == {"tdmpc2", "cfc-zp-det"}
+    with pytest.raises(ConfigError, match="eval_prior must be True or False, got 'yes'"):
+        grid.GridOptions(eval_prior="yes")
 
 
 def test_tables_list_every_agent_whose_run_exists_besides_the_requested_ones(tmp_path):

@@ -86,7 +86,10 @@ class GridOptions:
     budget too, which is what the tables read); a run folder that exists keeps the cadence it was created with
     (:func:`saved_eval_every`), since the trainer refuses to resume under another one. A walker-run evaluation
     costs ~20–30 s on an H100, 20 of them about a quarter of a 200K run: a sparser cadence is what lets such a
-    run finish inside one 30-minute hold of a lent GPU."""
+    run finish inside one 30-minute hold of a lent GPU.
+
+    ``eval_prior``: the runs' training-time evaluations also play their episodes with the policy prior alone
+    (``TrainConfig.eval_prior``; eval.csv's ``prior_return``); a run that exists may turn it on when resumed."""
 
     steps: int = 200_000
     seeds: int = 3
@@ -98,10 +101,13 @@ class GridOptions:
     episodes: int = 10
     backend: str = "mjx"
     eval_every: int = 10_000
+    eval_prior: bool = False
 
     def __post_init__(self):
         for name in ("steps", "seeds", "envs", "episodes", "eval_every"):
             require_int(name, getattr(self, name), 1)
+        if not isinstance(self.eval_prior, bool):
+            raise ConfigError(f"eval_prior must be True or False, got {self.eval_prior!r}")
         if self.backend not in BACKENDS:
             raise ConfigError(f"unknown backend {self.backend!r}; known: {', '.join(BACKENDS)}")
         if self.agents is not None:
@@ -170,7 +176,8 @@ def expand(study: Study, options: GridOptions) -> list[RunSpec]:
             config = TrainConfig(task=condition.task, agent=agent, seeds=options.seeds, steps=options.steps,
                                  envs=options.envs, obs=condition.train_obs, model_size=options.model_size,
                                  small=options.small, seed_steps=min(5000, options.steps), out=folder,
-                                 eval_every=saved_eval_every(folder) or options.eval_every)
+                                 eval_every=saved_eval_every(folder) or options.eval_every,
+                                 eval_prior=options.eval_prior)
             specs.append(RunSpec(study.name, condition, agent, config, study.horizons))
     return specs
 
