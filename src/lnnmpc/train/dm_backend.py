@@ -20,6 +20,7 @@ import numpy as np
 
 from lnnmpc.envs import Env
 from lnnmpc.envs.corruptions import corruption_reset, corruption_step
+from lnnmpc.train.loop import stacked_initial_carry
 
 
 def load_dm_control(env: Env, seed: int):
@@ -95,7 +96,7 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
     k_corrupt, k_act, _ = _split_each(episode_keys(key, seed_ids, episodes))
     corrupt_reset, corrupt_step = _corruption_fns(env)
     cstate, delivered, dt = corrupt_reset(k_corrupt, jnp.asarray(obs.reshape(seeds * episodes, -1)))
-    carry = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (*n, *jnp.shape(x))), agent.initial_carry())
+    carry = stacked_initial_carry(agent, *n)
     act = _act_fn(agent)
     totals = np.zeros(n)
     for t in range(env.episode_length):

@@ -108,7 +108,7 @@ class TrainingLoop:
 
     def initial_carries(self, n: int) -> Any:
         """The agent's initial acting carry stacked for ``n`` environments."""
-        return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (n, *jnp.shape(x))), self.agent.initial_carry())
+        return stacked_initial_carry(self.agent, n)
 
     def _reset_carries(self, carry: Any, first: jax.Array) -> Any:
         """Carries of environments at their first step (``first`` (n,)) back to the initial carry."""
@@ -241,8 +241,7 @@ def play_episodes(acting: Any, agent_state: Any, env: envs_lib.Env, key: jax.Arr
     (episodes,) before the step, ``carry`` the acting carries after acting on ``state.obs``."""
     k_reset, k_act = evaluation_keys(key, episodes)
     env_state = jax.vmap(env.reset)(k_reset)
-    carries = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (episodes, *jnp.shape(x))),
-                                     acting.initial_carry())
+    carries = stacked_initial_carry(acting, episodes)
 
     def body(loop_carry, t):
         s, carry, total = loop_carry
@@ -254,6 +253,11 @@ def play_episodes(acting: Any, agent_state: Any, env: envs_lib.Env, key: jax.Arr
     (_, _, total), records = jax.lax.scan(body, (env_state, carries, jnp.zeros((episodes,))),
                                           jnp.arange(steps or env.episode_length))
     return total, records
+
+
+def stacked_initial_carry(agent: Any, *shape: int) -> Any:
+    """``agent.initial_carry()`` broadcast to leading axes ``shape`` (e.g. (environments,) or (seeds, episodes))."""
+    return jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x, (*shape, *jnp.shape(x))), agent.initial_carry())
 
 
 def evaluation_keys(key: jax.Array, episodes: int) -> tuple[jax.Array, jax.Array]:
