@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lnnmpc.analysis import metrics, report
+from lnnmpc.analysis import cartpole, metrics, report
 from lnnmpc.analysis.projection import log_speed
 from lnnmpc.analysis.rollout import rollout_program
 from lnnmpc.train import runfolder
@@ -183,6 +183,42 @@ def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
         ranks = list(csv.DictReader(f))
     assert [(r["env_step"], float(r["effective_rank"]), float(r["std"])) for r in ranks] == [
         ("100", 1.5, 0.5), ("300", 3.5, 0.5), ("500", 5.5, 0.5)]
+
+
+def test_cartpole_episode_stats_of_known_trajectories():
+    T = 2000
+    t = np.arange(T) / T
+    held = np.stack([np.full(T, 0.1), np.zeros(T)], axis=-1)  # balanced at the centre from the start
+    spin = 3 * 2 * np.pi * t
+    spinning = np.stack([np.full(T, 0.5), np.angle(np.exp(1j * (np.pi + spin)))], axis=-1)  # wrapped, off centre
+    swing = np.stack([np.full(T, -0.3), np.pi * np.clip(1 - 2 * t, 0, 1)], axis=-1)  # down to up, then held
+    stats = cartpole.episode_stats(np.stack([held, spinning, swing]))
+    np.testing.assert_allclose(stats["turns"], [0.0, 3 * (T - 1) / T, 0.5], atol=1e-9)
+    arc = np.arccos(0.995) / np.pi  # the upright arc's share of one turn at a constant rate
+    np.testing.assert_allclose(stats["upright_share"], [1.0, arc, 0.5 + arc / 2], atol=2e-3)
+    np.testing.assert_allclose(stats["sparse_region_share"], [1.0, 0.0, 0.0])  # the cart at 0.5 and -0.3: outside
+    np.testing.assert_allclose(stats["mean_abs_cart"], [0.1, 0.5, 0.3])
+    with pytest.raises(ValueError, match=r"\(episodes, steps, 2\)"):
+        cartpole.episode_stats(np.zeros((4, 2)))
+
+
+def test_cartpole_analysis_reports_every_seed_and_refuses_other_tasks(tmp_path, capsys):
+    run = _untrained_run(tmp_path / "run")
+    assert cartpole.main([run, "--episodes", "2", "--length", "30"]) == 0
+    with open(os.path.join(run, "analysis", "500", "cartpole_episodes.csv")) as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["env_step"], r["seed"], r["episodes"]) for r in rows] == [("500", "0", "2")]
+    row = {k: float(rows[0][k]) for k in ("return", *cartpole.STATS)}
+    assert 0 <= row["return"] <= 30 and row["turns"] > 0  # an untrained agent moves the pole, rarely up
+    assert 0 <= row["sparse_region_share"] <= row["upright_share"] <= 1 and row["mean_abs_cart"] >= 0
+    assert "| seed | return | turns |" in capsys.readouterr().out
+    other = tmp_path / "acrobot"
+    os.makedirs(other)
+    runfolder.write_config(str(other), TrainConfig(task="acrobot-swingup", agent="cfc-zp-det", small=True,
+                                                    out=str(other), compile_cache=""), {})
+    assert cartpole.main([str(other)]) == 2
+    assert "trained on acrobot-swingup" in capsys.readouterr().err
+    assert cartpole.main([run, "--episodes", "0"]) == 2
 
 
 def _rank_run(folder, rows, rank_column=True, model=None):

@@ -70,12 +70,17 @@ def _cartpole_observe(data, ids):
     return (("position", position), ("velocity", data.qvel))
 
 
+# The sparse cartpole reward's region (dm_control's _CART_RANGE and _ANGLE_COSINE_RANGE): 1 inside, 0 outside.
+CART_BOUNDS = (-0.25, 0.25)
+UPRIGHT_COSINE_BOUNDS = (0.995, 1.0)
+
+
 def _cartpole_reward(sparse: bool):
     def reward(data, action, ids):
         cart_position = data.qpos[0]
         pole_cos = data.xmat[ids["pole"], 2, 2]
         if sparse:
-            return tolerance(cart_position, (-0.25, 0.25)) * tolerance(pole_cos, (0.995, 1.0))
+            return tolerance(cart_position, CART_BOUNDS) * tolerance(pole_cos, UPRIGHT_COSINE_BOUNDS)
         upright = (pole_cos + 1) / 2
         centered = (1 + tolerance(cart_position, margin=2)) / 2
         small_control = tolerance(action[0], margin=1, value_at_margin=0, sigmoid="quadratic")

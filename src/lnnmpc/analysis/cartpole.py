@@ -1,0 +1,106 @@
+"""``python -m lnnmpc.analysis.cartpole RUN``: where a cartpole agent keeps its pole and its cart, seed by seed.
+
+    python -m lnnmpc.analysis.cartpole <run folder> [--checkpoint STEP] [--episodes 4] [--length T]
+
+Plays deterministic episodes (the trainer's evaluation protocol, :func:`lnnmpc.analysis.rollout.rollout`; the same
+key for every seed) with each trained seed of a cartpole run and reports what a return alone does not say:
+
+* ``turns``: full turns of the pole per episode (the unwrapped hinge angle's total variation / 2π); a policy that
+  swings up and balances turns about half a turn, one that spins the pole several;
+* ``upright_share``: the share of agent steps with the pole upright (cos θ > 0.995, the sparse task's bound);
+* ``sparse_region_share``: the share with the pole upright and the cart within ±0.25 as well, the region where
+  cartpole-swingup-sparse pays (:data:`lnnmpc.envs.tasks.CART_BOUNDS`, :data:`UPRIGHT_COSINE_BOUNDS`);
+* ``mean_abs_cart``: the mean |cart position|.
+
+A seed stuck without the sparse reward spins the pole through the upright region (several turns, a few per cent of
+its steps in the region); one that balances off centre has many upright steps but fewer in the region. Writes
+``<run>/analysis/<step>/cartpole_episodes.csv`` (or ``--out``; one row per seed, means over the episodes) and
+prints the rows as a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+from lnnmpc.envs.tasks import CART_BOUNDS, UPRIGHT_COSINE_BOUNDS
+from lnnmpc.train import runfolder
+
+STATS = ("turns", "upright_share", "sparse_region_share", "mean_abs_cart")
+
+
+def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-episode statistics (each (E,)) of cartpole joint positions ``qpos`` (E, T, 2): [cart position, hinge
+    angle] at each agent step (module docstring)."""
+    qpos = np.asarray(qpos, dtype=np.float64)
+    if qpos.ndim != 3 or qpos.shape[-1] != 2:
+        raise ValueError(f"qpos must be (episodes, steps, 2) = [cart position, hinge angle], got {qpos.shape}")
+    cart, angle = qpos[..., 0], qpos[..., 1]
+    upright = np.cos(angle) >= UPRIGHT_COSINE_BOUNDS[0]
+    centred = (cart >= CART_BOUNDS[0]) & (cart <= CART_BOUNDS[1])
+    turning = np.abs(np.diff(np.unwrap(angle, axis=1), axis=1)).sum(axis=1)
+    return {"turns": turning / (2 * np.pi), "upright_share": upright.mean(axis=1),
+            "sparse_region_share": (upright & centred).mean(axis=1), "mean_abs_cart": np.abs(cart).mean(axis=1)}
+
+
+def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None) -> list[dict]:
+    """One row per trained seed of the cartpole run ``run``: its episodes' mean return and :data:`STATS` (means over
+    ``episodes`` deterministic episodes of ``length`` agent steps, default the task's), with ``env_step``."""
+    import jax
+
+    from lnnmpc.analysis.rollout import rollout
+    from lnnmpc.train.evaluate import load_policy
+
+    config = runfolder.saved_config(run)
+    if not config.task.startswith("cartpole"):
+        raise ValueError(f"{run} trained on {config.task}: this analysis reads cartpole's cart and pole")
+    policy = load_policy(run, checkpoint)
+    rows = []
+    for seed in range(config.seeds):
+        state = jax.tree_util.tree_map(lambda x, s=seed: x[s], policy.agent_state)
+        records = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes, length)
+        stats = episode_stats(records["qpos"])
+        rows.append({"env_step": policy.checkpoint, "seed": seed, "episodes": episodes,
+                     "return": float(records["reward"].sum(axis=1).mean()),
+                     **{name: float(values.mean()) for name, values in stats.items()}})
+    return rows
+
+
+def markdown(rows: list[dict]) -> str:
+    head = "| seed | return | turns | upright share | sparse region share | mean abs cart |"
+    lines = [head, "|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['seed']} | {r['return']:.1f} | {r['turns']:.1f} | {r['upright_share']:.3f} | "
+              f"{r['sparse_region_share']:.3f} | {r['mean_abs_cart']:.2f} |" for r in rows]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m lnnmpc.analysis.cartpole", description=__doc__.split("\n")[0])
+    p.add_argument("run", help="run folder of a cartpole task")
+    p.add_argument("--checkpoint", type=int, default=None, help="env step of the checkpoint (default: the newest)")
+    p.add_argument("--episodes", type=int, default=4, help="deterministic episodes per seed")
+    p.add_argument("--length", type=int, default=None, help="agent steps per episode (default: the task's)")
+    p.add_argument("--out", default=None, help="folder of cartpole_episodes.csv (default <run>/analysis/<step>)")
+    args = p.parse_args(argv)
+    if args.episodes < 1 or (args.length is not None and args.length < 2):
+        print(f"--episodes must be >= 1 and --length >= 2, got {args.episodes} and {args.length}", file=sys.stderr)
+        return 2
+    try:
+        rows = seed_rows(args.run, args.checkpoint, args.episodes, args.length)
+    except (ValueError, FileNotFoundError) as error:
+        print(error, file=sys.stderr)
+        return 2
+    out = args.out or os.path.join(args.run, "analysis", str(rows[0]["env_step"]))
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, "cartpole_episodes.csv")
+    runfolder.write_csv(path, ["env_step", "seed", "episodes", "return", *STATS], rows)
+    print(markdown(rows))
+    print(f"-> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
