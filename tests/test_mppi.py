@@ -216,3 +216,16 @@ def test_prev_mean_horizon_mismatch():
             explore=False,
             first_step=True,
         )
+
+
+def test_given_exploration_noise_replaces_the_white_draw():
+    cfg = MPPIConfig(iterations=3, num_samples=64, num_policy_trajectories=8, num_elites=8)
+    model = point_model(target=jnp.zeros(2))
+    prev, key, z0 = jnp.zeros((cfg.horizon, 2)), jax.random.PRNGKey(7), jnp.array([0.2, -0.1])
+    greedy, _, info = planner(cfg, model, explore=False)(z0, prev, key, first_step=True)
+    noise = jnp.array([0.7, -2.5])  # large enough that the second component clips
+    noisy, _, _ = planner(cfg, model, explore=True)(z0, prev, key, first_step=True, explore_noise=noise)
+    expected = np.clip(np.asarray(greedy, np.float64) + np.asarray(info["std"][0], np.float64) * [0.7, -2.5], -1, 1)
+    np.testing.assert_allclose(noisy, expected, rtol=1e-6, atol=1e-6)
+    ignored, _, _ = planner(cfg, model, explore=False)(z0, prev, key, first_step=True, explore_noise=noise)
+    np.testing.assert_array_equal(ignored, greedy)  # no exploration, no noise

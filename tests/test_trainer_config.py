@@ -276,7 +276,11 @@ def test_train_check_validates_and_prints_without_writing(tmp_path, capsys):
         main(["train", "--task", "cartpole-balance", "--small", "--set", "lamda=0", "--out", str(run), "--check"])
     assert exit_.value.code == 2 and "unknown hyperparameter 'lamda'" in capsys.readouterr().err
     main(["train", "--task", "cartpole-balance", "--small", "--eval-prior", "--out", str(run), "--check"])
-    assert "10 episode(s) per seed, also with the policy prior alone (prior_return)\n" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "10 episode(s) per seed, also with the policy prior alone (prior_return)\n" in out
+    assert "exploration noise in training: white, drawn every step\n" in out
+    main(["train", "--task", "cartpole-balance", "--small", "--explore-noise-beta", "1", "--out", str(run), "--check"])
+    assert "exploration noise in training: colored over each episode, spectrum 1/f^1\n" in capsys.readouterr().out
     (tmp_path / "file").write_text("")
     with pytest.raises(ConfigError, match="cannot be created: .*file' is not a writable folder"):
         runfolder.check_creatable(str(tmp_path / "file" / "run"))

@@ -348,15 +348,18 @@ class LNNTDMPC2(TDMPC2):
         )
 
     def act(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
-            explore: bool, first_step: jax.Array) -> tuple[jax.Array, LNNCarry]:
-        """Encode o_t (d,) after Δt_t (), plan with MPPI from h_t; returns (action (A,), next carry)."""
+            explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
+            ) -> tuple[jax.Array, LNNCarry]:
+        """Encode o_t (d,) after Δt_t (), plan with MPPI from h_t; returns (action (A,), next carry);
+        ``explore_noise`` (A,): :func:`mppi_plan`'s."""
         params = state.params
         carry = self._start(carry, first_step)
         h = self._encode_one(params, carry, obs, dt)
         k_plan, k_model = jax.random.split(key)
         latent = {"z": self.latent_of(params, h, obs), "key": jax.random.key_data(k_model)}
         action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params),
-                                    latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step)
+                                    latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step,
+                                    explore_noise=explore_noise)
         return action, LNNCarry(h=h, prev_action=action, plan_mean=mean)
 
     def act_prior(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,

@@ -149,8 +149,13 @@ def mppi_plan(
     *,
     explore: bool,
     first_step: jax.Array | bool,
+    explore_noise: jax.Array | None = None,
 ) -> tuple[jax.Array, jax.Array, dict[str, jax.Array]]:
     """Plan from latent ``z0``; returns (action (act_dim,), new_mean (horizon, act_dim), info).
+
+    With ``explore`` the action gets the final std times a standard normal draw (TD-MPC2), or times
+    ``explore_noise`` (act_dim,) when given (e.g. step t of an episode's colored noise,
+    :mod:`lnnmpc.agents.exploration`).
 
     ``new_mean`` is the final (unshifted) MPPI mean: pass it back as ``prev_mean`` on the next step. ``info`` holds
     the final ``std`` (horizon, act_dim), ``elite_value_max`` / ``elite_value_mean`` and ``elite_index``.
@@ -196,7 +201,8 @@ def mppi_plan(
     idx = jax.random.categorical(k_select, logits)
     action = elite_actions[0, idx]
     if explore:
-        action = action + std[0] * jax.random.normal(k_noise, (act_dim,), dtype)
+        noise = jax.random.normal(k_noise, (act_dim,), dtype) if explore_noise is None else explore_noise
+        action = action + std[0] * noise.astype(dtype)
     action = jnp.clip(action, -1.0, 1.0)
     info = {
         "std": std,

@@ -258,9 +258,11 @@ class TDMPC2:
         return carry
 
     def act(self, state: AgentState, carry: jax.Array, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
-            explore: bool, first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """Protocol act: MPPI action (A,) for one observation (d,) and the next carry (the plan mean)."""
-        return self.plan(state, obs, carry, key, explore=explore, first_step=first_step)
+            explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
+            ) -> tuple[jax.Array, jax.Array]:
+        """Protocol act: MPPI action (A,) for one observation (d,) and the next carry (the plan mean);
+        ``explore_noise`` (A,): :func:`mppi_plan`'s."""
+        return self.plan(state, obs, carry, key, explore=explore, first_step=first_step, explore_noise=explore_noise)
 
     def act_prior(self, state: AgentState, carry: jax.Array, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
                   explore: bool, first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -276,7 +278,7 @@ class TDMPC2:
 
     # ----------------------------------------------------------------------------------------- act
     def plan(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
-             first_step: jax.Array) -> tuple[jax.Array, jax.Array]:
+             first_step: jax.Array, explore_noise: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A))."""
         params, cfg = state.params, self.config
         model = PlanningModel(
@@ -288,5 +290,5 @@ class TDMPC2:
         )
         z = self._apply(params, obs, method="encode")
         action, mean, _ = mppi_plan(cfg.planner, model, z, prev_mean, key, explore=explore,
-                                    first_step=first_step)
+                                    first_step=first_step, explore_noise=explore_noise)
         return action, mean

@@ -44,6 +44,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--eval-prior", action="store_true",
                    help="every evaluation also plays its episodes with the policy prior acting alone (no MPPI): "
                         "eval.csv's prior_return")
+    p.add_argument("--explore-noise-beta", type=float,
+                   help="exploration noise colored over each episode with power spectrum 1/f^BETA (1 pink, 2 red) "
+                        "in place of the planner's white noise (default: white, drawn every step)")
     p.add_argument("--checkpoint-every", type=int, help="environment steps between checkpoints (default 10000)")
     p.add_argument("--keep-checkpoints", type=int, help="newest checkpoints kept (default 3)")
     p.add_argument("--batch-size", type=int, help="sequences per update (default 256)")
@@ -152,10 +155,13 @@ def describe_setup(setup) -> str:
     start = (f"resumes at the checkpoint of {setup.resume_step:,} env steps" if setup.resume_step is not None
              else "new run")
     overrides = ", ".join(f"{k}={v}" for k, v in sorted(c.overrides.items())) or "none"
+    noise = ("white, drawn every step" if c.explore_noise_beta is None
+             else f"colored over each episode, spectrum 1/f^{c.explore_noise_beta:g}")
     return (f"OK: {setup.run} ({start})\n"
             f"  {c.task}, {c.agent}, {c.seeds} seed(s) x {c.envs} env(s), {c.steps:,} env steps, "
             f"obs {obs_tag(c.obs)}, eval obs {obs_tag(c.eval_obs)}\n"
             f"  agent overrides: {overrides}\n"
+            f"  exploration noise in training: {noise}\n"
             f"  evaluation every {c.eval_every:,} env steps, {c.eval_episodes} episode(s) per seed"
             f"{', also with the policy prior alone (prior_return)' if c.eval_prior else ''}\n"
             f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps (ends at "

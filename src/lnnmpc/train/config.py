@@ -134,6 +134,10 @@ class TrainConfig:
         prior acting alone (``lnnmpc.agents.actor``), in the same compiled program; eval.csv gains a
         ``prior_return`` column. Off: the evaluation and eval.csv are those of runs before the option. A resumed
         run may turn it on or off (the training does not depend on it).
+      explore_noise_beta: None (TD-MPC2): the planner's exploration noise in training is white, drawn anew at
+        every step; β >= 0: each environment draws, at every episode start, one Gaussian sequence over the episode
+        with power spectrum 1/f^β (1: pink, 2: red; ``lnnmpc.agents.exploration``), and step t's sample replaces
+        the white draw (still times the planner's std). Evaluation never explores.
       checkpoint_every, keep_checkpoints: checkpoint cadence (also at the end and on Ctrl-C) and how many to keep.
       model_size, small, batch_size, physics, replay_capacity, overrides: agent/loop settings; ``overrides`` goes
         to ``make_agent(..., overrides=...)`` (keys as the agent defines them).
@@ -177,6 +181,7 @@ class TrainConfig:
     compile_cache: str = dataclasses.field(default_factory=default_compile_cache)
     compile_ahead: str = "auto"
     eval_prior: bool = False
+    explore_noise_beta: float | None = None
 
     def __post_init__(self):
         from lnnmpc.agents.registry import AGENTS
@@ -203,6 +208,10 @@ class TrainConfig:
         for name in ("small", "tensorboard", "eval_prior"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        beta = self.explore_noise_beta
+        if beta is not None and (isinstance(beta, bool) or not isinstance(beta, (int, float)) or not 0 <= beta <= 4):
+            raise ConfigError(f"explore_noise_beta must be a number in [0, 4] (0 white, 1 pink, 2 red) or None "
+                              f"(TD-MPC2's white noise), got {beta!r}")
         if not isinstance(self.wandb, str) or not re.fullmatch(r"[A-Za-z0-9._-]{0,128}", self.wandb):
             raise ConfigError(f"wandb project {self.wandb!r} must be letters, digits, '.', '_' or '-' (at most 128; "
                               "empty turns W&B logging off)")

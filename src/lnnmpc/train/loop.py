@@ -32,6 +32,7 @@ from flax import struct
 
 from lnnmpc import envs as envs_lib
 from lnnmpc.agents.actor import with_actor
+from lnnmpc.agents.exploration import colored_noise
 from lnnmpc.agents.registry import acting_latent
 from lnnmpc.replay import ReplayState, replay_add, replay_init, replay_sample
 
@@ -48,6 +49,11 @@ class LoopConfig:
 
     ``eval_prior``: :meth:`TrainingLoop.evaluate_logged` also plays the evaluation's episodes with the policy
     prior acting alone (the agent's ``act_prior``; :func:`lnnmpc.agents.actor.with_actor`).
+
+    ``explore_noise_beta``: None: the agent's own exploration noise (white). β >= 0: every environment draws one
+    colored sequence (episode_length, A) with spectrum 1/f^β at each episode start
+    (:func:`lnnmpc.agents.exploration.colored_noise`; ``TrainState.explore_noise``), and :meth:`train_chunk`
+    passes its step-t sample to the agent's ``act`` as ``explore_noise``.
     """
 
     num_envs: int = 1
@@ -56,6 +62,7 @@ class LoopConfig:
     eval_episodes: int = 10
     guard_empty_replay: bool = True
     eval_prior: bool = False
+    explore_noise_beta: float | None = None
 
     def __post_init__(self):
         for name in ("num_envs", "batch_size", "replay_capacity", "eval_episodes"):
@@ -65,6 +72,8 @@ class LoopConfig:
         for name in ("guard_empty_replay", "eval_prior"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
+        if self.explore_noise_beta is not None and not self.explore_noise_beta >= 0:
+            raise ValueError(f"explore_noise_beta must be >= 0 or None, got {self.explore_noise_beta!r}")
 
 
 def windows_after_seed_phase(seed_iterations: int, episode_length: int, sequence_length: int,
@@ -97,6 +106,15 @@ class TrainState:
     key: jax.Array
 
 
+@struct.dataclass
+class ExploringTrainState(TrainState):
+    """:class:`TrainState` of a loop with colored exploration noise (``LoopConfig.explore_noise_beta``): plus the
+    current episodes' noise (num_envs, episode_length, A). A class of its own so that the state of every other
+    run keeps its layout (and its checkpoints their signature, :func:`lnnmpc.train.compat.layout_signature`)."""
+
+    explore_noise: jax.Array = None
+
+
 class TrainingLoop:
     """Compiled pieces of training for one agent on one environment (vmap them over seeds).
 
@@ -120,10 +138,30 @@ class TrainingLoop:
         m, act_dim = self.config.num_envs, self.env.action_size
         record = self.agent.replay_record(jnp.zeros((self.env.observation_size,)), jnp.zeros((act_dim,)),
                                           jnp.zeros(()), jnp.ones(()), self.agent.initial_carry())
-        return TrainState(
+        ts = TrainState(
             agent=self.agent.init(k_agent), replay=replay_init(record, self.config.replay_capacity, m),
             env=jax.vmap(self.env.reset)(jax.random.split(k_env, m)),
             carry=self.initial_carries(m), episode_return=jnp.zeros((m,)), key=k_loop)
+        if self.config.explore_noise_beta is None:
+            return ts
+        noise = self._episode_noise(jax.random.fold_in(k_loop, 1))
+        return ExploringTrainState(**{f.name: getattr(ts, f.name) for f in dataclasses.fields(ts)},
+                                   explore_noise=noise)
+
+    def _episode_noise(self, key: jax.Array) -> jax.Array:
+        """(num_envs, episode_length, A) fresh colored exploration noise, one sequence per environment."""
+        noise = colored_noise(key, self.config.explore_noise_beta, self.env.episode_length,
+                              (self.config.num_envs, self.env.action_size))
+        return jnp.moveaxis(noise, 0, 1)
+
+    def _exploration(self, ts: TrainState, first: jax.Array, key: jax.Array) -> tuple[TrainState, Any]:
+        """With colored exploration noise: the state with fresh sequences for the environments at their first step
+        (``first`` (num_envs,)) and each environment's sample for its step t, (num_envs, A); else (ts, None)."""
+        if not isinstance(ts, ExploringTrainState):
+            return ts, None
+        noise = jnp.where(first[:, None, None], self._episode_noise(key), ts.explore_noise)
+        t = jnp.minimum(ts.env.t, self.env.episode_length - 1)
+        return ts.replace(explore_noise=noise), noise[jnp.arange(noise.shape[0]), t]
 
     # ------------------------------------------------------------------------------------------ steps
     def _env_step(self, ts: TrainState, action: jax.Array, carry: Any, next_carry: Any, key: jax.Array):
@@ -185,8 +223,15 @@ class TrainingLoop:
             key, k_act, k_env, k_update = jax.random.split(ts.key, 4)
             first = ts.env.t == 0
             carry = self._reset_carries(ts.carry, first)
-            act = jax.vmap(lambda c, o, dt, k, f: self.agent.act(ts.agent, c, o, dt, k, explore=True, first_step=f))
-            action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first)
+            ts, noise = self._exploration(ts, first, jax.random.fold_in(k_act, 1))
+            if noise is None:  # the agent's white noise: the call of runs before the option
+                act = jax.vmap(lambda c, o, dt, k, f: self.agent.act(ts.agent, c, o, dt, k, explore=True,
+                                                                     first_step=f))
+                action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first)
+            else:
+                act = jax.vmap(lambda c, o, dt, k, f, n: self.agent.act(ts.agent, c, o, dt, k, explore=True,
+                                                                        first_step=f, explore_noise=n))
+                action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first, noise)
             ts, out = self._env_step(ts.replace(key=key), action, carry, next_carry, k_env)
             ts, metrics = jax.lax.scan(lambda ts, k: self._update(ts, k), ts, jax.random.split(k_update, m))
             return ts, {**out, **jax.tree_util.tree_map(lambda x: x[-1], metrics)}
