@@ -52,7 +52,7 @@ class LoopConfig:
 
     ``explore_noise_beta``: None: the agent's own exploration noise (white). β >= 0: every environment draws one
     colored sequence (episode_length, A) with spectrum 1/f^β at each episode start
-    (:func:`lnnmpc.agents.exploration.colored_noise`; ``TrainState.explore_noise``), and :meth:`train_chunk`
+    (:func:`lnnmpc.agents.exploration.colored_noise`; :class:`ExploringTrainState`), and :meth:`train_chunk`
     passes its step-t sample to the agent's ``act`` as ``explore_noise``.
     """
 
