@@ -138,15 +138,12 @@ class TrainingLoop:
         m, act_dim = self.config.num_envs, self.env.action_size
         record = self.agent.replay_record(jnp.zeros((self.env.observation_size,)), jnp.zeros((act_dim,)),
                                           jnp.zeros(()), jnp.ones(()), self.agent.initial_carry())
-        ts = TrainState(
-            agent=self.agent.init(k_agent), replay=replay_init(record, self.config.replay_capacity, m),
-            env=jax.vmap(self.env.reset)(jax.random.split(k_env, m)),
-            carry=self.initial_carries(m), episode_return=jnp.zeros((m,)), key=k_loop)
+        fields = dict(agent=self.agent.init(k_agent), replay=replay_init(record, self.config.replay_capacity, m),
+                      env=jax.vmap(self.env.reset)(jax.random.split(k_env, m)), carry=self.initial_carries(m),
+                      episode_return=jnp.zeros((m,)), key=k_loop)
         if self.config.explore_noise_beta is None:
-            return ts
-        noise = self._episode_noise(jax.random.fold_in(k_loop, 1))
-        return ExploringTrainState(**{f.name: getattr(ts, f.name) for f in dataclasses.fields(ts)},
-                                   explore_noise=noise)
+            return TrainState(**fields)
+        return ExploringTrainState(**fields, explore_noise=self._episode_noise(jax.random.fold_in(k_loop, 1)))
 
     def _episode_noise(self, key: jax.Array) -> jax.Array:
         """(num_envs, episode_length, A) fresh colored exploration noise, one sequence per environment."""
@@ -223,15 +220,10 @@ class TrainingLoop:
             key, k_act, k_env, k_update = jax.random.split(ts.key, 4)
             first = ts.env.t == 0
             carry = self._reset_carries(ts.carry, first)
-            ts, noise = self._exploration(ts, first, jax.random.fold_in(k_act, 1))
-            if noise is None:  # the agent's white noise: the call of runs before the option
-                act = jax.vmap(lambda c, o, dt, k, f: self.agent.act(ts.agent, c, o, dt, k, explore=True,
-                                                                     first_step=f))
-                action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first)
-            else:
-                act = jax.vmap(lambda c, o, dt, k, f, n: self.agent.act(ts.agent, c, o, dt, k, explore=True,
-                                                                        first_step=f, explore_noise=n))
-                action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first, noise)
+            ts, noise = self._exploration(ts, first, jax.random.fold_in(k_act, 1))  # None: the agent's white noise
+            act = jax.vmap(lambda c, o, dt, k, f, n: self.agent.act(ts.agent, c, o, dt, k, explore=True,
+                                                                    first_step=f, explore_noise=n))
+            action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first, noise)
             ts, out = self._env_step(ts.replace(key=key), action, carry, next_carry, k_env)
             ts, metrics = jax.lax.scan(lambda ts, k: self._update(ts, k), ts, jax.random.split(k_update, m))
             return ts, {**out, **jax.tree_util.tree_map(lambda x: x[-1], metrics)}
