@@ -9,7 +9,8 @@ random action, every episode from its own initial state (the same initial states
 * ``white``: i.i.d. Gaussian of std ``--scale``, clipped to [-1, 1] (what an MPPI planner whose value is flat
   executes: a random elite's first action plus its std times white noise, every step anew);
 * ``pink`` / ``red``: Gaussian noise with power spectrum 1/f^β over the whole episode (β = 1 / 2; unit variance
-  per episode, times ``--scale``, clipped), drawn by the FFT method (Timmer & König 1995), as in "Pink noise is
+  per episode, times ``--scale``, clipped), shaped as ``train --explore-noise-beta`` shapes it
+  (:mod:`lnnmpc.agents.exploration`; the FFT method of Timmer & König 1995), as in "Pink noise is
   all you need" (Eberhard et al., ICLR 2023), which found such episode-long colored exploration noise to help most
   on sparse-reward dm_control tasks.
 
@@ -30,24 +31,18 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc import envs
+from lnnmpc.agents.exploration import shape_spectrum
 from lnnmpc.analysis.cartpole import episode_stats
 
 KINDS = {"uniform": None, "white": 0.0, "pink": 1.0, "red": 2.0}
 
 
-def colored_noise(rng: np.random.Generator, beta: float, episodes: int, steps: int) -> np.ndarray:
-    """(episodes, steps) float64 Gaussian sequences with power spectrum ∝ 1/f^β, each standardised to mean 0 and
-    std 1 over its steps (β = 0: white)."""
-    freqs = np.fft.rfftfreq(steps)
-    freqs[0] = freqs[1]  # no infinite power at f = 0
-    amplitude = freqs ** (-beta / 2.0)
-    shape = (episodes, freqs.size)
-    spectrum = amplitude * (rng.standard_normal(shape) + 1j * rng.standard_normal(shape))
-    spectrum[:, 0] = spectrum[:, 0].real
-    if steps % 2 == 0:
-        spectrum[:, -1] = spectrum[:, -1].real
-    noise = np.fft.irfft(spectrum, n=steps, axis=1)
-    return (noise - noise.mean(axis=1, keepdims=True)) / noise.std(axis=1, keepdims=True)
+def episode_noise(rng: np.random.Generator, beta: float, episodes: int, steps: int) -> np.ndarray:
+    """(episodes, steps) Gaussian sequences with power spectrum ∝ 1/f^β, each of unit variance: the trainer's
+    :func:`lnnmpc.agents.exploration.shape_spectrum` of standard normal Fourier coefficients drawn by ``rng``."""
+    shape = (episodes, steps // 2 + 1)  # drawn episode-major, the coefficients along axis 0 for shape_spectrum
+    real, imag = rng.standard_normal(shape).T, rng.standard_normal(shape).T
+    return np.asarray(shape_spectrum(jnp.asarray(real), jnp.asarray(imag), beta, steps), np.float64).T
 
 
 def random_actions(kind: str, rng: np.random.Generator, episodes: int, steps: int, scale: float) -> np.ndarray:
@@ -55,7 +50,7 @@ def random_actions(kind: str, rng: np.random.Generator, episodes: int, steps: in
     if kind == "uniform":
         actions = rng.uniform(-1.0, 1.0, (episodes, steps))
     else:
-        actions = np.clip(scale * colored_noise(rng, KINDS[kind], episodes, steps), -1.0, 1.0)
+        actions = np.clip(scale * episode_noise(rng, KINDS[kind], episodes, steps), -1.0, 1.0)
     return actions.T[..., None].astype(np.float32)
 
 
