@@ -60,7 +60,7 @@ def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length
     policy = load_policy(run, checkpoint)
     rows = []
     for seed in range(config.seeds):
-        state = jax.tree_util.tree_map(lambda x, s=seed: x[s], policy.agent_state)
+        state = policy.seed_state(seed)
         records = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes, length)
         stats = episode_stats(records["qpos"])
         rows.append({"env_step": policy.checkpoint, "seed": seed, "episodes": episodes,

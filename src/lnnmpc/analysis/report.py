@@ -174,7 +174,7 @@ def effective_ranks(run: str, steps: list[int], episodes: int, seed_index: int =
         latent = (known or {}).get(step)
         if latent is None:
             policy = load_policy(run, step) if policy is None else policy_at(policy, run, step)
-            state = jax.tree_util.tree_map(lambda x: x[seed_index], policy.agent_state)
+            state = policy.seed_state(seed_index)
             latent = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes,
                              length)["latent"]
         ranks = np.array([metrics.effective_rank(z) for z in latent])
@@ -241,7 +241,7 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
         raise ValueError(f"seed_index {seed_index} is not one of the run's seeds 0..{config.seeds - 1}")
     out = out or os.path.join(run, "analysis", str(policy.checkpoint))
     os.makedirs(out, exist_ok=True)
-    state = jax.tree_util.tree_map(lambda x: x[seed_index], policy.agent_state)
+    state = policy.seed_state(seed_index)
     rec = rollout(agent, state, policy.loop.eval_env, jax.random.key(seed), episodes, length)
     names = state_names(config.task, rec["clean_obs"].shape[-1])
     masks = phase_masks(config.task, rec["qpos"])

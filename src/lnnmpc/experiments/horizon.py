@@ -54,7 +54,7 @@ def evaluate_horizon(run: str, horizon: int, *, obs: str | dict | None = None, e
                        small=config.small, overrides={**config.overrides, "plan_horizon": horizon})
     key = jax.random.key(seed)
     returns = mjx_evaluator(agent, env, episodes, config.seeds)(policy.agent_state, key)
-    first_seed = jax.tree_util.tree_map(lambda x: x[0], policy.agent_state)
+    first_seed = policy.seed_state(0)
     times = planner_times(agent, first_seed, env, jax.random.fold_in(key, 1), calls=max(timing_calls, returns.size))
     path = out or os.path.join(run, "evals", f"horizon{horizon}-{obs_tag(options)}-{policy.checkpoint}.csv")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)

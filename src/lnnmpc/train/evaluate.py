@@ -67,6 +67,10 @@ class Policy:
     agent_state: object
     checkpoint: int
 
+    def seed_state(self, index: int) -> object:
+        """The agent state of trained seed ``index`` (``agent_state`` with the seed axis taken off every leaf)."""
+        return jax.tree_util.tree_map(lambda x: x[index], self.agent_state)
+
 
 def check_observation_size(env, policy: Policy) -> None:
     """Evaluation corruptions must keep the observation the agent was trained on (remove_vel as in training)."""
