@@ -120,18 +120,17 @@ def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str, 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    steps = [t["env_step"] for t in table]
-    mean, std = np.asarray([t["mean"] for t in table]), np.asarray([t["std"] for t in table])
+    def band(rows: list[dict], alpha: float, **style) -> None:  # mean line and ± std band of eval_table rows
+        steps = [t["env_step"] for t in rows]
+        mean, std = np.asarray([t["mean"] for t in rows]), np.asarray([t["std"] for t in rows])
+        line, = ax.plot(steps, mean, marker="o", markersize=3, **style)
+        ax.fill_between(steps, mean - std, mean + std, alpha=alpha, color=line.get_color())
+
     over = "seeds" if table and table[-1]["seeds"] > 1 else "episodes"
     fig, ax = plt.subplots(figsize=(6.4, 4))
-    ax.plot(steps, mean, marker="o", markersize=3,
-            label=f"this run{', MPPI' if prior else ''} (mean ± std over {over})")
-    ax.fill_between(steps, mean - std, mean + std, alpha=0.25)
+    band(table, 0.25, label=f"this run{', MPPI' if prior else ''} (mean ± std over {over})")
     if prior:
-        steps, mean = [t["env_step"] for t in prior], np.asarray([t["mean"] for t in prior])
-        std = np.asarray([t["std"] for t in prior])
-        line, = ax.plot(steps, mean, linestyle="--", marker="o", markersize=3, label="the policy prior alone")
-        ax.fill_between(steps, mean - std, mean + std, alpha=0.15, color=line.get_color())
+        band(prior, 0.15, linestyle="--", label="the policy prior alone")
     for (label, value), style in zip(refs.items(), ("--", ":"), strict=False):
         ax.axhline(value, linestyle=style, color="gray" if style == "--" else "black", linewidth=1,
                    label=f"{label}: {value:.0f}")
