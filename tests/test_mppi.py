@@ -198,6 +198,8 @@ def test_horizon_one():
         ({"min_std": 3.0}, "min_std=3.0"),
         ({"gamma": 1.5}, "gamma=1.5"),
         ({"num_policy_trajectories": True}, "num_policy_trajectories=True"),
+        ({"explore_min_std": -0.1}, r"explore_min_std=-0.1 is invalid; expected a finite number >= 0"),
+        ({"explore_min_std": float("inf")}, "explore_min_std=inf"),
     ],
 )
 def test_config_validation(kwargs, match):
@@ -229,3 +231,25 @@ def test_given_exploration_noise_replaces_the_white_draw():
     np.testing.assert_allclose(noisy, expected, rtol=1e-6, atol=1e-6)
     ignored, _, _ = planner(cfg, model, explore=False)(z0, prev, key, first_step=True, explore_noise=noise)
     np.testing.assert_array_equal(ignored, greedy)  # no exploration, no noise
+
+
+def test_exploration_noise_floor():
+    """``explore_min_std`` scales the noise by max(std[0], floor): a planner whose std collapsed (a sharp optimum:
+    std at min_std) still explores at the floor, one whose std is above it is unchanged."""
+    cfg = MPPIConfig(iterations=6, num_samples=256, num_policy_trajectories=0, num_elites=16, min_std=0.05)
+    model = point_model(target=jnp.zeros(2))
+    prev, key, z0 = jnp.zeros((cfg.horizon, 2)), jax.random.PRNGKey(11), jnp.array([0.2, -0.1])
+    noise = jnp.array([0.3, -0.6])
+    greedy, _, info = planner(cfg, model, explore=False)(z0, prev, key, first_step=True)
+    std0 = np.asarray(info["std"][0], np.float64)
+    assert np.all(std0 < 0.5)  # the sharp optimum shrank the std below the floor used next
+    floored = dataclasses.replace(cfg, explore_min_std=0.5)
+    noisy, _, _ = planner(floored, model, explore=True)(z0, prev, key, first_step=True, explore_noise=noise)
+    expected = np.clip(np.asarray(greedy, np.float64) + 0.5 * np.asarray(noise, np.float64), -1, 1)
+    np.testing.assert_allclose(noisy, expected, rtol=1e-6, atol=1e-6)
+    low = dataclasses.replace(cfg, explore_min_std=float(std0.min()) / 2)  # below the std: no change
+    plain, _, _ = planner(cfg, model, explore=True)(z0, prev, key, first_step=True, explore_noise=noise)
+    same, _, _ = planner(low, model, explore=True)(z0, prev, key, first_step=True, explore_noise=noise)
+    np.testing.assert_allclose(same, plain, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(plain, np.clip(np.asarray(greedy, np.float64) + std0 * np.asarray(noise), -1, 1),
+                               rtol=1e-6, atol=1e-6)

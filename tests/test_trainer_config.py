@@ -278,9 +278,13 @@ def test_train_check_validates_and_prints_without_writing(tmp_path, capsys):
     main(["train", "--task", "cartpole-balance", "--small", "--eval-prior", "--out", str(run), "--check"])
     out = capsys.readouterr().out
     assert "10 episode(s) per seed, also with the policy prior alone (prior_return)\n" in out
-    assert "exploration noise in training: white, drawn every step\n" in out
-    main(["train", "--task", "cartpole-balance", "--small", "--explore-noise-beta", "1", "--out", str(run), "--check"])
-    assert "exploration noise in training: colored over each episode, spectrum 1/f^1\n" in capsys.readouterr().out
+    assert "exploration noise in training: white, drawn every step, scaled by the planner's std\n" in out
+    main(["train", "--task", "cartpole-balance", "--small", "--explore-noise-beta", "1", "--set",
+          "explore_min_std=0.5", "--out", str(run), "--check"])
+    out = capsys.readouterr().out
+    assert ("exploration noise in training: colored over each episode, spectrum 1/f^1, scaled by the planner's std "
+            "(at least 0.5)\n") in out
+    assert "agent overrides: explore_min_std=0.5" in out
     (tmp_path / "file").write_text("")
     with pytest.raises(ConfigError, match="cannot be created: .*file' is not a writable folder"):
         runfolder.check_creatable(str(tmp_path / "file" / "run"))

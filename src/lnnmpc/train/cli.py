@@ -157,6 +157,8 @@ def describe_setup(setup) -> str:
     overrides = ", ".join(f"{k}={v}" for k, v in sorted(c.overrides.items())) or "none"
     noise = ("white, drawn every step" if c.explore_noise_beta is None
              else f"colored over each episode, spectrum 1/f^{c.explore_noise_beta:g}")
+    floor = getattr(getattr(loop.agent.config, "planner", None), "explore_min_std", 0.0)
+    noise += f", scaled by the planner's std (at least {floor:g})" if floor else ", scaled by the planner's std"
     return (f"OK: {setup.run} ({start})\n"
             f"  {c.task}, {c.agent}, {c.seeds} seed(s) x {c.envs} env(s), {c.steps:,} env steps, "
             f"obs {obs_tag(c.obs)}, eval obs {obs_tag(c.eval_obs)}\n"

@@ -56,7 +56,8 @@ ADDED_AGENT_FIELDS = {"nll_beta": 0.0, "model.input_transform": "none", "joint_g
                       "model.simnorm_layer_norm": False, "flat_optimizer": False, "rollout_steps": 1,
                       "scan_unroll": 1, "rollout_stride": 1, "model.latent_head": "none", "model.simnorm_dim": 8,
                       "model.latent_size": 0, "model.latent_obs_skip": False,
-                      "model.latent_head_hidden": 0, "learn_episode_starts": False}
+                      "model.latent_head_hidden": 0, "learn_episode_starts": False,
+                      "planner.explore_min_std": 0.0}
 
 
 def check_agent_config(run: str, agent_config) -> None:
