@@ -73,7 +73,34 @@ def test_loop_draws_fresh_noise_at_episode_starts_and_hands_the_step_sample_to_t
     assert type(jax.eval_shape(plain.init, jax.random.key(0))) is TrainState
 
 
+def test_colored_seed_phase_acts_with_each_episodes_sequence_clipped():
+    """``seed_noise_beta``: the seed phase's actions are the environments' colored sequences at their steps,
+    clipped to [-1, 1] (the replay records them), fresh ones at episode starts; without it the seed phase keeps
+    its uniform actions and the plain state."""
+    config = TrainConfig(task="cartpole-swingup", agent="tdmpc2", small=True, envs=2, steps=1000, seed_steps=0,
+                         replay_capacity=2100, compile_cache="", seed_noise_beta=1.0)
+    loop = build_loop(config)
+    assert loop.config.seed_noise_beta == 1.0 and loop.config.explore_noise_beta is None
+    ts = jax.jit(loop.init)(jax.random.key(0))
+    assert isinstance(ts, ExploringTrainState)
+    ts = ts.replace(env=ts.env.replace(t=jnp.array([3, 7], jnp.int32)))  # two running episodes
+    noise = np.asarray(ts.explore_noise)
+    out, _ = jax.jit(lambda t: loop.seed_chunk(t, 4))(ts)
+    np.testing.assert_array_equal(np.asarray(out.explore_noise), noise)  # no episode started: same sequences
+    actions = np.asarray(out.replay.fields["action"])[:4]  # (4 steps, 2 envs, 1)
+    expected = np.stack([np.clip(noise[[0, 1], [3 + k, 7 + k]], -1, 1) for k in range(4)])
+    np.testing.assert_allclose(actions, expected, rtol=1e-6, atol=1e-6)
+    assert np.abs(expected).max() <= 1.0 and np.abs(noise[:, 3:11]).max() > 0.0
+    # the training chunk afterwards explores with the agent's own white noise (explore_noise_beta None)
+    assert loop._exploration(out, out.env.t == 0, jax.random.key(2))[1] is None
+    plain = build_loop(TrainConfig(task="cartpole-swingup", agent="tdmpc2", small=True, envs=2, steps=1000,
+                                   seed_steps=0, replay_capacity=2100, compile_cache=""))
+    plain_ts, _ = jax.jit(lambda t: plain.seed_chunk(t, 2))(jax.jit(plain.init)(jax.random.key(0)))
+    assert type(plain_ts) is TrainState
+
+
+@pytest.mark.parametrize("name", ["explore_noise_beta", "seed_noise_beta"])
 @pytest.mark.parametrize("beta", [-0.5, 5.0, True, "pink"])
-def test_config_refuses_an_impossible_noise_exponent(beta):
-    with pytest.raises(ConfigError, match=r"explore_noise_beta must be a number in \[0, 4\]"):
-        TrainConfig(task="cartpole-swingup", explore_noise_beta=beta)
+def test_config_refuses_an_impossible_noise_exponent(name, beta):
+    with pytest.raises(ConfigError, match=rf"{name} must be a number in \[0, 4\]"):
+        TrainConfig(task="cartpole-swingup", **{name: beta})

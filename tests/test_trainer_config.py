@@ -285,6 +285,11 @@ def test_train_check_validates_and_prints_without_writing(tmp_path, capsys):
     assert ("exploration noise in training: colored over each episode, spectrum 1/f^1, scaled by the planner's std "
             "(at least 0.5)\n") in out
     assert "agent overrides: explore_min_std=0.5" in out
+    assert "seed phase: 5,000 env steps of uniform random actions\n" in out
+    main(["train", "--task", "cartpole-balance", "--small", "--seed-noise-beta", "1", "--seed-steps", "20000",
+          "--out", str(run), "--check"])
+    out = capsys.readouterr().out
+    assert "seed phase: 20,000 env steps of colored noise over each episode, spectrum 1/f^1, clipped\n" in out
     (tmp_path / "file").write_text("")
     with pytest.raises(ConfigError, match="cannot be created: .*file' is not a writable folder"):
         runfolder.check_creatable(str(tmp_path / "file" / "run"))

@@ -47,6 +47,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--explore-noise-beta", type=float,
                    help="exploration noise colored over each episode with power spectrum 1/f^BETA (1 pink, 2 red) "
                         "in place of the planner's white noise (default: white, drawn every step)")
+    p.add_argument("--seed-noise-beta", type=float,
+                   help="the seed phase acts with noise colored over each episode, spectrum 1/f^BETA, clipped to "
+                        "[-1, 1] (default: uniform random actions)")
     p.add_argument("--checkpoint-every", type=int, help="environment steps between checkpoints (default 10000)")
     p.add_argument("--keep-checkpoints", type=int, help="newest checkpoints kept (default 3)")
     p.add_argument("--batch-size", type=int, help="sequences per update (default 256)")
@@ -157,6 +160,8 @@ def describe_setup(setup) -> str:
     overrides = ", ".join(f"{k}={v}" for k, v in sorted(c.overrides.items())) or "none"
     noise = ("white, drawn every step" if c.explore_noise_beta is None
              else f"colored over each episode, spectrum 1/f^{c.explore_noise_beta:g}")
+    seed_actions = ("uniform random actions" if c.seed_noise_beta is None
+                    else f"colored noise over each episode, spectrum 1/f^{c.seed_noise_beta:g}, clipped")
     floor = getattr(getattr(loop.agent.config, "planner", None), "explore_min_std", 0.0)
     noise += f", scaled by the planner's std (at least {floor:g})" if floor else ", scaled by the planner's std"
     return (f"OK: {setup.run} ({start})\n"
@@ -164,6 +169,7 @@ def describe_setup(setup) -> str:
             f"obs {obs_tag(c.obs)}, eval obs {obs_tag(c.eval_obs)}\n"
             f"  agent overrides: {overrides}\n"
             f"  exploration noise in training: {noise}\n"
+            f"  seed phase: {c.seed_steps:,} env steps of {seed_actions}\n"
             f"  evaluation every {c.eval_every:,} env steps, {c.eval_episodes} episode(s) per seed"
             f"{', also with the policy prior alone (prior_return)' if c.eval_prior else ''}\n"
             f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps (ends at "

@@ -138,6 +138,12 @@ class TrainConfig:
         every step; β >= 0: each environment draws, at every episode start, one Gaussian sequence over the episode
         with power spectrum 1/f^β (1: pink, 2: red; ``lnnmpc.agents.exploration``), and step t's sample replaces
         the white draw (still times the planner's std). Evaluation never explores.
+      seed_noise_beta: None (TD-MPC2): the seed phase acts uniformly at random in [-1, 1]; β >= 0: it acts with
+        one such colored sequence per environment and episode (unit std, clipped to [-1, 1]). On
+        cartpole-swingup-sparse uniform actions never reach the reward, pink ones in 29% of episodes
+        (``experiments/results/random-exploration-sparse-cpu``), so the replay holds rewarded steps before
+        the first update. An episode running when the seed phase ends keeps its sequence as its exploration noise
+        (when ``explore_noise_beta`` is set).
       checkpoint_every, keep_checkpoints: checkpoint cadence (also at the end and on Ctrl-C) and how many to keep.
       model_size, small, batch_size, physics, replay_capacity, overrides: agent/loop settings; ``overrides`` goes
         to ``make_agent(..., overrides=...)`` (keys as the agent defines them).
@@ -182,6 +188,7 @@ class TrainConfig:
     compile_ahead: str = "auto"
     eval_prior: bool = False
     explore_noise_beta: float | None = None
+    seed_noise_beta: float | None = None
 
     def __post_init__(self):
         from lnnmpc.agents.registry import AGENTS
@@ -208,10 +215,13 @@ class TrainConfig:
         for name in ("small", "tensorboard", "eval_prior"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        beta = self.explore_noise_beta
-        if beta is not None and (isinstance(beta, bool) or not isinstance(beta, (int, float)) or not 0 <= beta <= 4):
-            raise ConfigError(f"explore_noise_beta must be a number in [0, 4] (0 white, 1 pink, 2 red) or None "
-                              f"(TD-MPC2's white noise), got {beta!r}")
+        for name, default in (("explore_noise_beta", "TD-MPC2's white noise"),
+                              ("seed_noise_beta", "uniform random actions")):
+            beta = getattr(self, name)
+            if beta is not None and (isinstance(beta, bool) or not isinstance(beta, (int, float))
+                                     or not 0 <= beta <= 4):
+                raise ConfigError(f"{name} must be a number in [0, 4] (0 white, 1 pink, 2 red) or None ({default}), "
+                                  f"got {beta!r}")
         if not isinstance(self.wandb, str) or not re.fullmatch(r"[A-Za-z0-9._-]{0,128}", self.wandb):
             raise ConfigError(f"wandb project {self.wandb!r} must be letters, digits, '.', '_' or '-' (at most 128; "
                               "empty turns W&B logging off)")

@@ -54,6 +54,10 @@ class LoopConfig:
     colored sequence (episode_length, A) with spectrum 1/f^β at each episode start
     (:func:`lnnmpc.agents.exploration.colored_noise`; :class:`ExploringTrainState`), and :meth:`train_chunk`
     passes its step-t sample to the agent's ``act`` as ``explore_noise``.
+
+    ``seed_noise_beta``: None: :meth:`seed_chunk` acts uniformly at random. β >= 0: it acts with such colored
+    sequences (unit std, drawn at each episode start, clipped to [-1, 1]); an episode running when the seed phase
+    ends keeps its sequence (as its exploration noise, with ``explore_noise_beta``).
     """
 
     num_envs: int = 1
@@ -63,6 +67,7 @@ class LoopConfig:
     guard_empty_replay: bool = True
     eval_prior: bool = False
     explore_noise_beta: float | None = None
+    seed_noise_beta: float | None = None
 
     def __post_init__(self):
         for name in ("num_envs", "batch_size", "replay_capacity", "eval_episodes"):
@@ -72,8 +77,9 @@ class LoopConfig:
         for name in ("guard_empty_replay", "eval_prior"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False, got {getattr(self, name)!r}")
-        if self.explore_noise_beta is not None and not self.explore_noise_beta >= 0:
-            raise ValueError(f"explore_noise_beta must be >= 0 or None, got {self.explore_noise_beta!r}")
+        for name in ("explore_noise_beta", "seed_noise_beta"):
+            if getattr(self, name) is not None and not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0 or None, got {getattr(self, name)!r}")
 
 
 def windows_after_seed_phase(seed_iterations: int, episode_length: int, sequence_length: int,
@@ -108,9 +114,10 @@ class TrainState:
 
 @struct.dataclass
 class ExploringTrainState(TrainState):
-    """:class:`TrainState` of a loop with colored exploration noise (``LoopConfig.explore_noise_beta``): plus the
-    current episodes' noise (num_envs, episode_length, A). A class of its own so that the state of every other
-    run keeps its layout (and its checkpoints their signature, :func:`lnnmpc.train.compat.layout_signature`)."""
+    """:class:`TrainState` of a loop with colored noise (``LoopConfig.explore_noise_beta`` or
+    ``seed_noise_beta``): plus the current episodes' noise (num_envs, episode_length, A). A class of its own so
+    that the state of every other run keeps its layout (and its checkpoints their signature,
+    :func:`lnnmpc.train.compat.layout_signature`)."""
 
     explore_noise: jax.Array = None
 
@@ -141,24 +148,33 @@ class TrainingLoop:
         fields = dict(agent=self.agent.init(k_agent), replay=replay_init(record, self.config.replay_capacity, m),
                       env=jax.vmap(self.env.reset)(jax.random.split(k_env, m)), carry=self.initial_carries(m),
                       episode_return=jnp.zeros((m,)), key=k_loop)
-        if self.config.explore_noise_beta is None:
+        c = self.config
+        if c.explore_noise_beta is None and c.seed_noise_beta is None:
             return TrainState(**fields)
-        return ExploringTrainState(**fields, explore_noise=self._episode_noise(jax.random.fold_in(k_loop, 1)))
+        beta = c.seed_noise_beta if c.seed_noise_beta is not None else c.explore_noise_beta
+        return ExploringTrainState(**fields, explore_noise=self._episode_noise(jax.random.fold_in(k_loop, 1), beta))
 
-    def _episode_noise(self, key: jax.Array) -> jax.Array:
-        """(num_envs, episode_length, A) fresh colored exploration noise, one sequence per environment."""
-        noise = colored_noise(key, self.config.explore_noise_beta, self.env.episode_length,
-                              (self.config.num_envs, self.env.action_size))
+    def _episode_noise(self, key: jax.Array, beta: float) -> jax.Array:
+        """(num_envs, episode_length, A) fresh colored noise of spectrum 1/f^``beta``, one sequence per
+        environment."""
+        noise = colored_noise(key, beta, self.env.episode_length, (self.config.num_envs, self.env.action_size))
         return jnp.moveaxis(noise, 0, 1)
 
-    def _exploration(self, ts: TrainState, first: jax.Array, key: jax.Array) -> tuple[TrainState, Any]:
-        """With colored exploration noise: the state with fresh sequences for the environments at their first step
-        (``first`` (num_envs,)) and each environment's sample for its step t, (num_envs, A); else (ts, None)."""
-        if not isinstance(ts, ExploringTrainState):
+    def _colored_sample(self, ts: TrainState, first: jax.Array, key: jax.Array,
+                        beta: float | None) -> tuple[TrainState, Any]:
+        """With colored noise of spectrum 1/f^``beta``: the state with fresh sequences for the environments at their
+        first step (``first`` (num_envs,)) and each environment's sample for its step t, (num_envs, A); with
+        ``beta`` None: (ts, None)."""
+        if beta is None:
             return ts, None
-        noise = jnp.where(first[:, None, None], self._episode_noise(key), ts.explore_noise)
+        noise = jnp.where(first[:, None, None], self._episode_noise(key, beta), ts.explore_noise)
         t = jnp.minimum(ts.env.t, self.env.episode_length - 1)
         return ts.replace(explore_noise=noise), noise[jnp.arange(noise.shape[0]), t]
+
+    def _exploration(self, ts: TrainState, first: jax.Array, key: jax.Array) -> tuple[TrainState, Any]:
+        """The training chunk's exploration noise: :meth:`_colored_sample` with ``explore_noise_beta`` (None: the
+        agent's own white noise)."""
+        return self._colored_sample(ts, first, key, self.config.explore_noise_beta)
 
     # ------------------------------------------------------------------------------------------ steps
     def _env_step(self, ts: TrainState, action: jax.Array, carry: Any, next_carry: Any, key: jax.Array):
@@ -192,11 +208,14 @@ class TrainingLoop:
         return ts.replace(agent=agent), metrics
 
     def seed_chunk(self, ts: TrainState, length: int) -> tuple[TrainState, dict]:
-        """``length`` iterations of uniform random actions (no updates; the agent still observes them)."""
+        """``length`` iterations of random actions, uniform or colored (``seed_noise_beta``; no updates; the agent
+        still observes them)."""
         def body(ts, _):
             key, k_act, k_env = jax.random.split(ts.key, 3)
-            action = jax.random.uniform(k_act, (self.config.num_envs, self.env.action_size), minval=-1, maxval=1)
             first = ts.env.t == 0
+            ts, colored = self._colored_sample(ts, first, jax.random.fold_in(k_act, 1), self.config.seed_noise_beta)
+            action = (jax.random.uniform(k_act, (self.config.num_envs, self.env.action_size), minval=-1, maxval=1)
+                      if colored is None else jnp.clip(colored, -1.0, 1.0))
             carry = self._reset_carries(ts.carry, first)
             observe = jax.vmap(lambda c, o, dt, a, f: self.agent.observe(ts.agent, c, o, dt, a, first_step=f))
             next_carry = observe(carry, ts.env.obs, ts.env.dt, action, first)

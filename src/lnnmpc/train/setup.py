@@ -90,7 +90,8 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
     guard = not windows_after_seed_phase(seeded, env.episode_length, agent.sequence_length, capacity)
     loop_config = LoopConfig(num_envs=config.envs, batch_size=config.batch_size, replay_capacity=capacity,
                              eval_episodes=config.eval_episodes, guard_empty_replay=guard,
-                             eval_prior=config.eval_prior, explore_noise_beta=config.explore_noise_beta)
+                             eval_prior=config.eval_prior, explore_noise_beta=config.explore_noise_beta,
+                             seed_noise_beta=config.seed_noise_beta)
     try:
         return TrainingLoop(agent, env, eval_env, loop_config)
     except ValueError as error:  # eval_prior with an agent that has no policy prior
