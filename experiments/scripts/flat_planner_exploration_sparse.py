@@ -23,7 +23,6 @@ pink near 1). The question: does the elite draw, white at every step, drown the 
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 
@@ -37,7 +36,7 @@ from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
 from lnnmpc.analysis.cartpole import episode_stats
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from random_exploration_sparse import play  # noqa: E402
+from random_exploration_sparse import lag1_autocorrelation, play, save_rows  # noqa: E402
 
 KINDS = ("white", "pink", "mean-pink")
 TINY = 1e-6
@@ -91,14 +90,6 @@ def planner_actions(kind: str, key: jax.Array, episodes: int, steps: int, action
     return np.asarray(actions), np.asarray(std0)
 
 
-def lag1_autocorrelation(actions: np.ndarray) -> float:
-    """Mean over episodes of the lag-1 autocorrelation of the first action dimension, (steps, episodes, A)."""
-    a = actions[..., 0] - actions[..., 0].mean(axis=0)
-    num = (a[1:] * a[:-1]).sum(axis=0)
-    den = np.maximum((a * a).sum(axis=0), 1e-12)
-    return float((num / den).mean())
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--episodes", type=int, default=64)
@@ -121,18 +112,13 @@ def main(argv: list[str] | None = None) -> int:
                      "sparse_region_share": float(stats["sparse_region_share"].mean()),
                      "turns": float(stats["turns"].mean()), "mean_std0": float(std0.mean()),
                      "mean_abs_action": float(np.abs(actions).mean()),
-                     "lag1_autocorrelation": lag1_autocorrelation(actions)})
+                     "lag1_autocorrelation": lag1_autocorrelation(actions[..., 0].T)})
         r = rows[-1]
         print(f"{kind:9s} episodes with reward {r['share_with_reward']:.3f}  mean return {r['mean_return']:7.2f}  "
               f"turns {r['turns']:.2f}  std0 {r['mean_std0']:.2f}  |a| {r['mean_abs_action']:.2f}  "
               f"lag-1 autocorrelation {r['lag1_autocorrelation']:.2f}")
     if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        print(f"-> {args.out}")
+        save_rows(rows, args.out)
     return 0
 
 

@@ -23,7 +23,6 @@ not seen a reward yet find the first one by its own noise, and does the noise's 
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 
 import jax
@@ -33,6 +32,7 @@ import numpy as np
 from lnnmpc import envs
 from lnnmpc.agents.exploration import shape_spectrum
 from lnnmpc.analysis.cartpole import episode_stats
+from lnnmpc.analysis.report import write_csv
 
 KINDS = {"uniform": None, "white": 0.0, "pink": 1.0, "red": 2.0}
 
@@ -70,6 +70,20 @@ def play(env, keys: jax.Array, actions: np.ndarray) -> tuple[np.ndarray, np.ndar
     return np.asarray(rewards).T, np.swapaxes(np.asarray(qpos), 0, 1)
 
 
+def lag1_autocorrelation(x: np.ndarray) -> float:
+    """Mean over episodes of the lag-1 autocorrelation of sequences ``x`` (episodes, steps), each centred on its
+    own mean."""
+    x = x - x.mean(axis=1, keepdims=True)
+    return float(((x[:, 1:] * x[:, :-1]).sum(axis=1) / np.maximum((x * x).sum(axis=1), 1e-12)).mean())
+
+
+def save_rows(rows: list[dict], path: str) -> None:
+    """``rows`` as the CSV ``path`` (its folder made; written atomically), and a line saying so."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    write_csv(path, rows)
+    print(f"-> {path}")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--episodes", type=int, default=64)
@@ -95,12 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{kind:8s} episodes with reward {r['share_with_reward']:.3f}  mean return {r['mean_return']:7.2f}  "
               f"max {r['max_return']:7.1f}  in region {r['sparse_region_share']:.4f}  turns {r['turns']:.2f}")
     if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        print(f"-> {args.out}")
+        save_rows(rows, args.out)
     return 0
 
 

@@ -21,9 +21,9 @@ whatever smooth tilt the near-zero Q heads have, whatever their scale)?
 from __future__ import annotations
 
 import argparse
-import csv
 import dataclasses
 import os
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -33,6 +33,9 @@ from lnnmpc.agents.exploration import colored_noise
 from lnnmpc.analysis.cartpole import episode_stats
 from lnnmpc.train.evaluate import load_policy
 from lnnmpc.train.loop import evaluation_keys, evaluation_step_keys, stacked_initial_carry
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from random_exploration_sparse import lag1_autocorrelation, save_rows  # noqa: E402
 
 # kind: (noise: None / "white" / "pink", floor of the noise's scale, MPPIConfig.explore_min_std)
 KINDS = {"none": (None, 0.0), "white": ("white", 0.0), "pink": ("pink", 0.0), "pink-floor0.5": ("pink", 0.5),
@@ -75,11 +78,6 @@ def exploring_episodes(agent, agent_state, env, key, episodes: int, kind: str | 
     return rewards, qpos, actions
 
 
-def lag1(actions: np.ndarray) -> float:
-    a = actions[..., 0] - actions[..., 0].mean(axis=1, keepdims=True)
-    return float(((a[:, 1:] * a[:, :-1]).sum(axis=1) / np.maximum((a * a).sum(axis=1), 1e-12)).mean())
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("run")
@@ -102,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
                      "episodes": args.episodes, "share_with_reward": float((returns > 0).mean()),
                      "mean_return": float(returns.mean()), "mean_abs_action": float(np.abs(actions).mean()),
                      "abs_episode_mean_action": float(np.abs(actions[..., 0].mean(axis=1)).mean()),
-                     "lag1_autocorrelation": lag1(actions), "turns": float(stats["turns"].mean()),
+                     "lag1_autocorrelation": lag1_autocorrelation(actions[..., 0]),
+                     "turns": float(stats["turns"].mean()),
                      "mean_abs_cart": float(stats["mean_abs_cart"].mean())})
         r = rows[-1]
         print(f"{kind:13s} with reward {r['share_with_reward']:.3f}  return {r['mean_return']:6.2f}  "
@@ -110,12 +109,7 @@ def main(argv: list[str] | None = None) -> int:
               f"lag-1 {r['lag1_autocorrelation']:.2f}  turns {r['turns']:.2f}  |cart| {r['mean_abs_cart']:.2f}",
               flush=True)
     if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        with open(args.out, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
-        print(f"-> {args.out}")
+        save_rows(rows, args.out)
     return 0
 
 
