@@ -422,6 +422,50 @@ def test_device_batch_relaunch_waits_for_the_earlier_process_of_its_job(tmp_path
     assert "earlier launches: 590.5 s" in relaunched.stdout
 
 
+def test_device_batch_does_not_relaunch_a_run_that_reached_its_steps(tmp_path):
+    """A training job whose earlier launch of the same line exited 0 is reported and not launched again (its run
+    would only resume and exit), and the GPU's memory goes to the jobs that do launch; a job that was cut (exit
+    124), a changed line, a study line or RERUN=1 launches as before."""
+    import subprocess
+    import time
+
+    env = _fake_gpu_machine(tmp_path, 1, 'echo "launched mem=$XLA_PYTHON_CLIENT_MEM_FRACTION"; exit 0')
+    batch = tmp_path / "runs" / "batch"
+    batch.mkdir(parents=True)
+    (batch / "commands.txt").write_text("done (GPU 0): --task cartpole-balance\ncut (GPU 0): --task cartpole-balance\n"
+                                        "study (GPU 0): experiment fig5_19 --small\n")
+    for name, rc in (("done", 0), ("cut", 124), ("study", 0)):
+        (batch / f"{name}.rc").write_text(f"{rc}\n")
+        (batch / f"{name}.log").write_text("first launch\n")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("done@0  --task cartpole-balance\ncut@0  --task cartpole-balance\n")
+
+    def start(**extra):  # a start, returned once every job it launched (in the background) has its exit status
+        result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "20"], capture_output=True,
+                                text=True, timeout=60, env={**env, **extra}, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        deadline = time.monotonic() + 20
+        while not all((batch / f"{n}.rc").exists() for n in ("done", "cut", "study")):
+            assert time.monotonic() < deadline, "a launched job wrote no exit status"
+            time.sleep(0.05)
+        return result
+
+    first = start()
+    assert "done: ended (exit 0) at an earlier launch of this line: not launched again" in first.stdout
+    assert (batch / "done.log").read_text() == "first launch\n" and (batch / "done.rc").read_text() == "0\n"
+    assert (batch / "cut.log").read_text() == "first launch\nlaunched mem=0.9\n"  # the GPU is the cut run's alone
+    launched = [line.split(" (")[0] for line in (batch / "commands.txt").read_text().splitlines()]
+    assert launched == ["done", "cut", "study", "cut"]
+    jobs.write_text("study  experiment fig5_19 --small\n")  # a study's exit status says nothing of its training
+    start()
+    assert (batch / "study.log").read_text().endswith("launched mem=0.9\n")
+    jobs.write_text("done  --task cartpole-balance --steps 400000\n")  # another line under the same name
+    start()
+    assert (batch / "done.log").read_text() == "first launch\nlaunched mem=0.9\n"
+    start(RERUN="1")  # the same line again, relaunched on request
+    assert (batch / "done.log").read_text().count("launched") == 2
+
+
 def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp_path):
     """``start``'s REPORT counts from the start itself (a relaunch's wait for its earlier process included), and
     while a report waits it packs report.txt and results.tar.gz into $OUT every SNAPSHOT_EVERY seconds, so that a

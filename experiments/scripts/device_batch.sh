@@ -7,7 +7,9 @@
 #                                               wait included) or when all have ended; refused
 #                                               while jobs of an earlier start still run (FORCE=1 overrides);
 #                                               a job of JOBS launched before (a run cut by its timeout, to be
-#                                               resumed) first waits for its earlier process to end
+#                                               resumed) first waits for its earlier process to end; a training
+#                                               job whose earlier launch of the same line exited 0 (its run
+#                                               reached its steps) is not launched again (RERUN=1 relaunches it)
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
 #   device_batch.sh after NAME GPU COMMAND...   once the job NAME of the running batch has ended (its exit status
 #                                               is in runs/batch/NAME.rc), run COMMAND on GPU in the background
@@ -107,6 +109,17 @@ still_running() {
     batch_jobs | while read -r name; do
         [ -f "$BATCH/$name.rc" ] || printf '%s ' "$name"
     done
+}
+
+# Exit 0 when the training job NAME with trainer arguments ARGS need not be launched again: its last launch on this
+# machine ran the same line (commands.txt) and exited 0, so its run reached its steps; relaunching it would only
+# resume, find nothing to train and exit (~40 s of a GPU, compilation included). Study lines ("experiment ...")
+# always relaunch: their exit status is that of the evaluation that follows a cut. RERUN=1 relaunches every job.
+finished_before() {  # NAME ARGS
+    [ "${RERUN:-0}" != 1 ] && [ "${2%% *}" != experiment ] && [ "$(cat "$BATCH/$1.rc" 2>/dev/null)" = 0 ] || return 1
+    local last
+    last=$(grep "^$1 (GPU [^)]*): " "$BATCH/commands.txt" 2>/dev/null | tail -1)
+    [ "${last#*): }" = "$2" ]
 }
 
 # The report: every run's progress line (and, for a job that has ended, its exit status and wall seconds), the
@@ -225,11 +238,21 @@ start)
     else
         echo "CUDA MPS not used" | tee "$BATCH/mps.txt"
     fi
+    # the jobs that ended at an earlier launch of the same line: reported, not launched, and no GPU's share
+    skipped=$(job_lines "$jobs" | while read -r name args; do
+        name=${name%@*}
+        finished_before "$name" "$args" && echo "$name"
+    done)
     index=0
     job_lines "$jobs" | while read -r name args; do
         index=$((index + 1))
         read -r name gpu < <(echo "$placement" | sed -n "${index}p")
-        sharing=$(echo "$placement" | awk -v g="$gpu" '$2 == g' | wc -l)
+        if echo "$skipped" | grep -qxF "$name"; then
+            echo "$name: ended (exit 0) at an earlier launch of this line: not launched again (RERUN=1 relaunches)"
+            continue
+        fi
+        sharing=$(echo "$placement" | grep -v -x -F -f <(echo "$skipped" | sed 's/$/ '"$gpu"'/') \
+            | awk -v g="$gpu" '$2 == g' | wc -l)
         export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(awk -v n="$sharing" 'BEGIN {print int(900 / n) / 1000}')}
         command=$(job_command "$name" "$args" "$BATCH" "--compile-cache runs/jaxcache" "")
         if [ "${args%% *}" = experiment ]; then  # a study stopped while training still evaluates what it has
