@@ -291,6 +291,18 @@ def _draw_metrics(axes: list, metrics: dict[str, list[dict]], colors: dict) -> l
     return rows
 
 
+def add_pool_and_column_args(parser: argparse.ArgumentParser, pooled: str, verb: str) -> None:
+    """``--pool LABEL`` and ``--eval-column NAME``, shared by ``compare`` (``pooled="curve", verb="plot"``) and
+    ``tables`` (``"column", "tabulate"``): what the pooled seeds become and what is done with the column."""
+    parser.add_argument("--pool", default=None, metavar="LABEL",
+                        help=f"also one {pooled} LABEL of every run's seeds together, at the steps all runs "
+                        "evaluated (runs of one configuration with other master seeds; refused for runs that "
+                        "differ otherwise)")
+    parser.add_argument("--eval-column", default="return",
+                        help=f"eval.csv column to {verb} (default return: MPPI's; prior_return: the policy prior "
+                        "alone, in runs trained with --eval-prior)")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m lnnmpc.train.compare", description=__doc__.split("\n")[0])
     p.add_argument("runs", nargs="+", help="run folders")
@@ -300,12 +312,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--title", default=None)
     p.add_argument("--metrics", default="", help="train.csv metrics to plot beside the returns, comma separated "
                    "(e.g. value_loss,reward_loss,grad_norm)")
-    p.add_argument("--pool", default=None, metavar="LABEL",
-                   help="also one curve LABEL of every run's seeds together, at the steps all runs evaluated "
-                   "(runs of one configuration with other master seeds; refused for runs that differ otherwise)")
-    p.add_argument("--eval-column", default="return",
-                   help="eval.csv column to plot (default return: MPPI's; prior_return: the policy prior alone, "
-                   "in runs trained with --eval-prior)")
+    add_pool_and_column_args(p, "curve", "plot")
     args = p.parse_args(argv)
 
     def compare() -> str:

@@ -34,7 +34,7 @@ import sys
 import numpy as np
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.compare import load_curves, pool_curves, run_curves
+from lnnmpc.train.compare import add_pool_and_column_args, load_curves, pool_curves, run_curves
 from lnnmpc.train.config import ConfigError, command_status
 from lnnmpc.train.report import LAST_EVALUATIONS, eval_table
 
@@ -153,15 +153,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--falls-below", type=float, default=None, metavar="R",
                    help="after the evaluation table, each run's last evaluation split at return R: episodes under "
                    "it (falls, on walker), the mean of the others, best and worst")
-    p.add_argument("--pool", default=None, metavar="LABEL",
-                   help="also one column LABEL of every run's seeds together, at the steps all runs evaluated "
-                   "(runs of one configuration with other master seeds; refused for runs that differ otherwise)")
     p.add_argument("--evals", default=None, metavar="NAME",
                    help="read each run's evals/NAME (written by `cli eval`, e.g. dm_control-clean-200192.csv) "
                    "instead of eval.csv")
-    p.add_argument("--eval-column", default="return",
-                   help="eval.csv column to tabulate (default return: MPPI's; prior_return: the policy prior alone, "
-                   "in runs trained with --eval-prior)")
+    add_pool_and_column_args(p, "column", "tabulate")
     args = p.parse_args(argv)
     if args.falls_below is not None and not np.isfinite(args.falls_below):
         p.error(f"--falls-below needs a finite return, got {args.falls_below}")
