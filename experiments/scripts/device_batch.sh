@@ -243,6 +243,7 @@ start)
         name=${name%@*}
         finished_before "$name" "$args" && echo "$name"
     done)
+    launching=$(echo "$placement" | awk 'NR == FNR { skip[$1]; next } !($1 in skip)' <(echo "$skipped") -)
     index=0
     job_lines "$jobs" | while read -r name args; do
         index=$((index + 1))
@@ -251,8 +252,7 @@ start)
             echo "$name: ended (exit 0) at an earlier launch of this line: not launched again (RERUN=1 relaunches)"
             continue
         fi
-        sharing=$(echo "$placement" | grep -v -x -F -f <(echo "$skipped" | sed 's/$/ '"$gpu"'/') \
-            | awk -v g="$gpu" '$2 == g' | wc -l)
+        sharing=$(echo "$launching" | awk -v g="$gpu" '$2 == g' | wc -l)
         export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(awk -v n="$sharing" 'BEGIN {print int(900 / n) / 1000}')}
         command=$(job_command "$name" "$args" "$BATCH" "--compile-cache runs/jaxcache" "")
         if [ "${args%% *}" = experiment ]; then  # a study stopped while training still evaluates what it has
