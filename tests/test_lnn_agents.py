@@ -13,6 +13,7 @@ from lnn_helpers import quick_jit, tiny_agent
 
 from lnnmpc.agents import math as M
 from lnnmpc.agents.lnn import LNNTDMPC2
+from lnnmpc.agents.overrides import apply_planner_overrides, planner_keys
 from lnnmpc.agents.registry import AGENTS, LNN_AGENTS, make_agent
 
 OBS, ACT, B = 5, 2, 8
@@ -81,6 +82,21 @@ def test_overrides_are_converted_validated_and_listed():
     with pytest.raises(ValueError, match=r"unknown hyperparameter 'burn_in'"):
         make_agent("tdmpc2", OBS, ACT, overrides={"burn_in": 3})
 
+
+def test_planner_overrides_change_the_planner_and_refuse_anything_else():
+    """What ``eval --planner`` may change: only planner fields (the trained parameters do not depend on them)."""
+    config = make_agent("cfc-op-det", OBS, ACT).config
+    assert planner_keys(config) == ["explore_min_std", "iterations", "max_std", "min_std", "num_elites",
+                                    "num_policy_trajectories", "num_samples", "plan_horizon", "temperature", "unroll"]
+    changed = apply_planner_overrides(config, {"iterations": "12", "plan_horizon": 5, "planner.gamma": 0.9})
+    assert (changed.planner.iterations, changed.planner.horizon, changed.planner.gamma) == (12, 5, 0.9)
+    assert changed.gamma == 0.99 and changed.model == config.model and changed.horizon == config.horizon
+    assert apply_planner_overrides(config, {}) is config
+    with pytest.raises(ValueError, match=r"'gamma', 'num_q' is not a planner setting; an evaluation may change "
+                                         r"only: explore_min_std, .*temperature, unroll \(or planner.FIELD\)"):
+        apply_planner_overrides(config, {"num_q": 5, "gamma": 0.9, "iterations": 2})
+    with pytest.raises(ValueError, match=r"planner: .*num_elites.* \(set by num_elites=1000\)"):
+        apply_planner_overrides(config, {"num_elites": 1000})
 
 @pytest.fixture(scope="module")
 def zp_agent():

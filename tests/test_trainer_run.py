@@ -306,6 +306,14 @@ def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
     assert os.path.basename(result.path) == "mjx-clean-1450.csv" and len(_rows(result.path)) == 8
     with pytest.raises(lnnmpc.ConfigError, match="checkpoint 500 is not in .*; available: 1000, 1450, 1902, 2804"):
         lnnmpc.evaluate(str(reference), checkpoint=500)
+    planned = lnnmpc.evaluate(str(reference), episodes=2, checkpoint=1450, planner={"iterations": 1, "plan_horizon": 2},
+                              verbose=False)
+    assert os.path.basename(planned.path) == "mjx-iterations1-plan_horizon2-clean-1450.csv"
+    rows = _rows(planned.path)
+    assert [r["planner"] for r in rows] == ["iterations=1 plan_horizon=2"] * 4 and planned.returns.shape == (2, 2)
+    assert np.all((planned.returns >= 0) & (planned.returns <= 1000))
+    with pytest.raises(lnnmpc.ConfigError, match="'num_q' is not a planner setting; an evaluation may change only: "):
+        lnnmpc.evaluate(str(reference), planner={"num_q": 3})
 
 
 def test_run_folder_without_checkpoints_evaluates_from_its_policy_file(reference, tmp_path, monkeypatch, cache):

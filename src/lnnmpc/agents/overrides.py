@@ -96,3 +96,25 @@ def apply_overrides(config: Any, overrides: dict[str, Any] | None) -> Any:
             given = ", ".join(f"{key}={overrides[key]!r}" for key in keys)
             raise ValueError(f"{name}: {error} (set by {given})") from error
     return dataclasses.replace(config, **top)
+
+
+def planner_keys(config: Any) -> list[str]:
+    """The override keys of ``config`` that set only its planner (``plan_horizon``, ``iterations``, ...): what an
+    evaluation may change without changing the trained model (``gamma`` is tied to the value targets: not one)."""
+    return sorted(key for key, paths in override_paths(config).items() if all(path[0] == "planner" for path in paths))
+
+
+def apply_planner_overrides(config: Any, planner: dict[str, Any] | None) -> Any:
+    """``config`` with planner-only ``planner`` overrides applied (bare keys of :func:`planner_keys` or
+    ``planner.FIELD``); ValueError on any other key lists the allowed ones (the model, losses and optimisers must
+    stay those the parameters were trained with)."""
+    if not planner:
+        return config
+    allowed = planner_keys(config)
+    wrong = sorted(key for key in planner if key not in allowed and not key.startswith("planner."))
+    if wrong:
+        raise ValueError(f"{', '.join(map(repr, wrong))} is not a planner setting; an evaluation may change only: "
+                         f"{', '.join(allowed)} (or planner.FIELD)")
+    return apply_overrides(config, planner)
+
+

@@ -4,6 +4,7 @@
     python -m lnnmpc.train.cli train --resume runs/walker-run/tdmpc2/20260101-120000-noise0.1-flicker0.2
     python -m lnnmpc.train.cli train --task walker-run --agent cfc-zp-det --set lambda_=0 --check  # print only
     python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control] [--actor prior]
+    python -m lnnmpc.train.cli eval RUN --planner iterations=12 --planner plan_horizon=5  # other MPPI settings
     python -m lnnmpc.train.cli video RUN [--out episode.gif] [--episodes 50 --falls-below 400]
     python -m lnnmpc.train.cli report RUN            # redraw curve.png and summary.md
 
@@ -22,7 +23,7 @@ import traceback
 
 from lnnmpc import envs
 from lnnmpc.agents.registry import AGENTS
-from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag
+from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag, parse_overrides
 
 EXIT_CONFIG, EXIT_DIVERGED, EXIT_INTERRUPTED = 2, 3, 130
 
@@ -89,6 +90,9 @@ def _eval_parser(sub) -> None:
     p.add_argument("--actor", default="planner",
                    help="planner (MPPI, as training evaluates) or prior (the policy prior alone, no planning; "
                         "CSV <backend>-prior-<obs>-<step>.csv)")
+    p.add_argument("--planner", dest="planner", action="append", metavar="KEY=VALUE", default=[],
+                   help="plan with another MPPI setting than the run trained with, repeatable (e.g. --planner "
+                        "iterations=12 --planner plan_horizon=5; planner keys only)")
 
 
 def _video_parser(sub) -> None:
@@ -186,7 +190,7 @@ def run_command(args: argparse.Namespace) -> None:
         from lnnmpc.train.evaluate import evaluate
 
         evaluate(args.run, obs=args.obs, episodes=args.episodes, backend=args.backend, checkpoint=args.checkpoint,
-                 seed=args.seed, out=args.out, actor=args.actor)
+                 seed=args.seed, out=args.out, actor=args.actor, planner=parse_overrides(args.planner, "--planner"))
     elif args.command == "video":
         os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen OpenGL without a display; before dm_control loads
         from lnnmpc.train.video import record, record_episodes

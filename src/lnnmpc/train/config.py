@@ -96,8 +96,9 @@ def obs_tag(options: Mapping) -> str:
     return "-".join(parts) or "clean"
 
 
-def parse_overrides(items: list[str] | Mapping | None) -> dict:
-    """``["planner.horizon=5", "lr=1e-3"]`` -> ``{"planner.horizon": 5, "lr": 0.001}`` (JSON-ish values)."""
+def parse_overrides(items: list[str] | Mapping | None, option: str = "--set") -> dict:
+    """``["planner.horizon=5", "lr=1e-3"]`` -> ``{"planner.horizon": 5, "lr": 0.001}`` (JSON-ish values);
+    ``option`` names the command-line option in the error for an item without ``=``."""
     if isinstance(items, Mapping):
         return dict(items)
     import json
@@ -106,7 +107,8 @@ def parse_overrides(items: list[str] | Mapping | None) -> dict:
     for item in items or ():
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"bad --set {item!r}; use KEY=VALUE, e.g. --set lr=1e-3")
+            raise ConfigError(f"bad {option} {item!r}; use KEY=VALUE, e.g. {option} "
+                              f"{'lr=1e-3' if option == '--set' else 'iterations=12'}")
         try:
             overrides[key.strip()] = json.loads(value)
         except json.JSONDecodeError:

@@ -13,6 +13,9 @@ row per (seed, episode) with the checkpoint's environment step, backend and corr
 without its checkpoints (one brought back from a GPU) is evaluated from its ``policy.npz``
 (:mod:`lnnmpc.train.policy_file`), the newest checkpoint's parameters. ``actor="prior"`` lets the policy prior
 act alone instead of MPPI (:mod:`lnnmpc.agents.actor`): what planning adds to the learned policy.
+``planner={"iterations": 12}`` plans with other MPPI settings than the run trained with (planner-only keys,
+:func:`lnnmpc.agents.overrides.planner_keys`; the parameters do not depend on them); the CSV's name and its
+``planner`` column say which.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ import numpy as np
 
 from lnnmpc import envs
 from lnnmpc.agents.actor import check_actor, with_actor
+from lnnmpc.agents.overrides import apply_planner_overrides
 from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
 from lnnmpc.train.compat import check_layout, state_signature
@@ -145,15 +149,33 @@ def require_actor(actor: str) -> None:
         raise ConfigError(str(error)) from None
 
 
+def planner_tag(planner: dict | None) -> str:
+    """``{"iterations": 12, "plan_horizon": 5}`` -> ``"iterations=12 plan_horizon=5"`` (sorted; "" for none)."""
+    return " ".join(f"{key}={value}" for key, value in sorted((planner or {}).items()))
+
+
+def with_planner(agent, planner: dict | None):
+    """``agent`` rebuilt with the planner-only overrides ``planner`` (the same class and trained configuration
+    otherwise, so its parameters fit); ConfigError names a key that is not a planner setting."""
+    if not planner:
+        return agent
+    try:
+        return type(agent)(apply_planner_overrides(agent.config, planner))
+    except ValueError as error:
+        raise ConfigError(str(error)) from None
+
+
 def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, backend: str = "mjx",
              checkpoint: int | None = None, seed: int = 0, out: str | None = None, actor: str = "planner",
-             verbose: bool = True) -> EvalResult:
+             planner: dict | None = None, verbose: bool = True) -> EvalResult:
     """Evaluates a run's checkpoint; writes a CSV (``out`` or ``<run>/evals/<backend>-<obs>-<step>.csv``).
 
     ``obs``: corruption options (text like "noise=0.3" or a dict; None: the run's evaluation corruptions).
     ``episodes``: per seed. ``checkpoint``: an environment step with a checkpoint (None: the latest).
     ``actor``: "planner" (MPPI, the training evaluation's) or "prior" (the policy prior alone, tanh of its mean;
     :mod:`lnnmpc.agents.actor`), whose CSV is named ``<backend>-prior-<obs>-<step>.csv``.
+    ``planner``: MPPI settings to plan with instead of the run's ({key: value}, e.g. ``{"iterations": 12}``);
+    the CSV is named ``<backend>-<key><value>...-<obs>-<step>.csv``.
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
@@ -170,7 +192,7 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     policy = load_policy(run, step)
     check_observation_size(env, policy)
     key = jax.random.key(seed)
-    agent = with_actor(policy.loop.agent, actor)
+    agent = with_actor(with_planner(policy.loop.agent, planner), actor)
     if backend == "mjx":
         returns = mjx_evaluator(agent, env, episodes, config.seeds)(policy.agent_state, key)
     else:
@@ -180,16 +202,19 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
         returns = run_episodes(env, agent, policy.agent_state, episodes, key, seed=seed,
                                progress=StepProgress(unit) if verbose else None)
     by = "" if actor == "planner" else f"{actor}-"
+    by += "".join(f"{key}{value}-" for key, value in sorted((planner or {}).items()))
     path = out or os.path.join(run, "evals", f"{backend}-{by}{obs_tag(options)}-{step}.csv")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     if os.path.exists(path):
         os.remove(path)
     runfolder.append_csv(path, [
         {"env_step": step, "seed": s, "episode": e, "return": float(returns[s, e]), "backend": backend,
-         "obs": obs_tag(options), "actor": actor} for s in range(returns.shape[0]) for e in range(returns.shape[1])])
+         "obs": obs_tag(options), "actor": actor, "planner": planner_tag(planner)}
+        for s in range(returns.shape[0]) for e in range(returns.shape[1])])
     result = EvalResult(returns=returns, checkpoint=step, backend=backend, obs=options, path=path)
     if verbose:
         acting = "" if actor == "planner" else f", acting with the {actor}"
+        acting += f", planning with {planner_tag(planner)}" if planner else ""
         sys.stdout.write(f"{config.task} {config.agent} checkpoint {step:,} on {backend} with "
                          f"{obs_tag(options)}{acting}: return {result.mean:.1f} ± {result.std:.1f} "
                          f"({returns.shape[0]} seed(s) x {episodes} episodes) -> {path}\n")
