@@ -38,15 +38,17 @@ endif
 
 # make eval RUN=<run folder> [OBS=...] [EPISODES=10] [BACKEND=mjx|dm_control] [CHECKPOINT=<env step>]
 #           [ACTOR=prior]: the policy prior alone acts (no MPPI), to see what planning adds
+#           [PLANNER="plan_horizon=5 iterations=12"]: plan with other MPPI settings than the run trained with
 RUN        ?=
 EPISODES   ?= 10
 BACKEND    ?= mjx
 CHECKPOINT ?=
 ACTOR      ?=
+PLANNER    ?=
 eval: $(STAMP)
 	$(PY) -m lnnmpc.train.cli eval "$(RUN)" --episodes $(EPISODES) --backend $(BACKEND) \
 		$(if $(filter command line,$(origin OBS)),--obs "$(OBS)") $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
-		$(if $(ACTOR),--actor $(ACTOR))
+		$(if $(ACTOR),--actor $(ACTOR)) $(foreach setting,$(PLANNER),--planner $(setting))
 
 # make video RUN=<run folder> [OUT=episode.mp4|.gif] [CHECKPOINT=...] [ACTOR=prior]  (offscreen OpenGL: Mesa EGL by default)
 # [FILMS=N [FALLS=R]]: N episodes into a folder, keeping those whose return ended below R
