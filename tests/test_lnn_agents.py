@@ -97,6 +97,16 @@ def test_planner_overrides_change_the_planner_and_refuse_anything_else():
         apply_planner_overrides(config, {"num_q": 5, "gamma": 0.9, "iterations": 2})
     with pytest.raises(ValueError, match=r"planner: .*num_elites.* \(set by num_elites=1000\)"):
         apply_planner_overrides(config, {"num_elites": 1000})
+    from lnnmpc.train.config import ConfigError
+    from lnnmpc.train.evaluate import with_planner
+
+    agent = make_agent("cfc-op-det", OBS, ACT)
+    rebuilt = with_planner(agent, {"plan_horizon": 5})
+    assert type(rebuilt) is LNNTDMPC2 and rebuilt.config == dataclasses.replace(
+        agent.config, planner=dataclasses.replace(agent.config.planner, horizon=5))
+    assert rebuilt.initial_carry().plan_mean.shape == (5, ACT) and with_planner(agent, None) is agent
+    with pytest.raises(ConfigError, match="'lr' is not a planner setting"):
+        with_planner(agent, {"lr": 1e-3})
 
 @pytest.fixture(scope="module")
 def zp_agent():

@@ -306,12 +306,13 @@ def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
     assert os.path.basename(result.path) == "mjx-clean-1450.csv" and len(_rows(result.path)) == 8
     with pytest.raises(lnnmpc.ConfigError, match="checkpoint 500 is not in .*; available: 1000, 1450, 1902, 2804"):
         lnnmpc.evaluate(str(reference), checkpoint=500)
-    planned = lnnmpc.evaluate(str(reference), episodes=2, checkpoint=1450, planner={"iterations": 1, "plan_horizon": 2},
+    # The trained planner's own values given as overrides: a rebuilt agent that plays the same episodes exactly (the
+    # same program, so no compilation; that other values plan differently is the unit test's and [57]'s)
+    planned = lnnmpc.evaluate(str(reference), episodes=4, checkpoint=1450, planner={"iterations": 2, "plan_horizon": 3},
                               verbose=False)
-    assert os.path.basename(planned.path) == "mjx-iterations1-plan_horizon2-clean-1450.csv"
-    rows = _rows(planned.path)
-    assert [r["planner"] for r in rows] == ["iterations=1 plan_horizon=2"] * 4 and planned.returns.shape == (2, 2)
-    assert np.all((planned.returns >= 0) & (planned.returns <= 1000))
+    assert os.path.basename(planned.path) == "mjx-iterations2-plan_horizon3-clean-1450.csv"
+    assert [r["planner"] for r in _rows(planned.path)] == ["iterations=2 plan_horizon=3"] * 8
+    np.testing.assert_array_equal(planned.returns, result.returns)
     with pytest.raises(lnnmpc.ConfigError, match="'num_q' is not a planner setting; an evaluation may change only: "):
         lnnmpc.evaluate(str(reference), planner={"num_q": 3})
 

@@ -1,7 +1,8 @@
 """Evaluation of a trained run with another planning horizon, and the time of one planning decision (Fig. 5.19).
 
 The world model does not depend on the planning horizon, so a checkpoint trained with H_plan = 10 is evaluated
-with any H_plan by rebuilding the agent with the ``plan_horizon`` override and restoring the same parameters.
+with any H_plan by rebuilding the agent with the ``plan_horizon`` planner override
+(:func:`lnnmpc.train.evaluate.with_planner`, what ``eval --planner`` uses) and restoring the same parameters.
 """
 
 from __future__ import annotations
@@ -13,10 +14,9 @@ import jax
 import numpy as np
 
 from lnnmpc import envs
-from lnnmpc.agents.registry import make_agent
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import obs_tag, parse_obs, require_int
-from lnnmpc.train.evaluate import load_policy, mjx_evaluator
+from lnnmpc.train.evaluate import load_policy, mjx_evaluator, with_planner
 
 
 def planner_times(agent, state, env, key: jax.Array, calls: int = 30) -> np.ndarray:
@@ -50,8 +50,7 @@ def evaluate_horizon(run: str, horizon: int, *, obs: str | dict | None = None, e
     config = policy.config
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     env = envs.make(config.task, physics=config.physics, **options)
-    agent = make_agent(config.agent, env.observation_size, env.action_size, model_size=config.model_size,
-                       small=config.small, overrides={**config.overrides, "plan_horizon": horizon})
+    agent = with_planner(policy.loop.agent, {"plan_horizon": horizon})
     key = jax.random.key(seed)
     returns = mjx_evaluator(agent, env, episodes, config.seeds)(policy.agent_state, key)
     first_seed = policy.seed_state(0)
