@@ -108,6 +108,7 @@ def test_planner_overrides_change_the_planner_and_refuse_anything_else():
     with pytest.raises(ConfigError, match="'lr' is not a planner setting"):
         with_planner(agent, {"lr": 1e-3})
 
+
 @pytest.fixture(scope="module")
 def zp_agent():
     agent = tiny("cfc-zp-det")

@@ -116,5 +116,3 @@ def apply_planner_overrides(config: Any, planner: dict[str, Any] | None) -> Any:
         raise ValueError(f"{', '.join(map(repr, wrong))} is not a planner setting; an evaluation may change only: "
                          f"{', '.join(allowed)} (or planner.FIELD)")
     return apply_overrides(config, planner)
-
-
