@@ -177,8 +177,9 @@ def test_report_on_a_checkpoint_writes_every_analysis(tmp_path):
     compiled = rollout_program.cache_info().misses
     hits = rollout_program.cache_info().hits
     out = report.analyse(run, episodes=2, length=40, use_umap=False)
-    # one rollout, of the newest checkpoint (a new policy object: a new program); no other checkpoint's (hits)
-    assert rollout_program.cache_info().misses == compiled + 1 and rollout_program.cache_info().hits == hits
+    # one rollout, of the newest checkpoint, no other checkpoint's: a new policy object of the same agent
+    # configuration and environment, so the program compiled above (one hit, no miss)
+    assert rollout_program.cache_info().misses == compiled and rollout_program.cache_info().hits == hits + 1
     with open(os.path.join(out, "effective_rank.csv")) as f:
         ranks = list(csv.DictReader(f))
     assert [(r["env_step"], float(r["effective_rank"]), float(r["std"])) for r in ranks] == [

@@ -109,6 +109,27 @@ def test_planner_overrides_change_the_planner_and_refuse_anything_else():
         with_planner(agent, {"lr": 1e-3})
 
 
+def test_evaluations_of_equal_agents_and_environments_share_one_program():
+    """``mjx_evaluator``'s compiled program is kept per (agent class and configuration, environment, sizes):
+    a rebuilt agent of the same configuration reuses it, other planner settings, the prior acting, other
+    corruptions or sizes get their own (nothing is traced or compiled here: jit is lazy)."""
+    from lnnmpc import envs
+    from lnnmpc.agents.actor import with_actor
+    from lnnmpc.train.evaluate import _evaluation_program, with_planner
+
+    env = envs.make("cartpole-swingup")
+    agent = make_agent("cfc-op-det", env.observation_size, env.action_size)
+    program = _evaluation_program(agent, env, 2, 1)
+    assert _evaluation_program(type(agent)(agent.config), envs.make("cartpole-swingup"), 2, 1) is program
+    others = [_evaluation_program(with_planner(agent, {"plan_horizon": 5}), env, 2, 1),
+              _evaluation_program(with_actor(agent, "prior"), env, 2, 1),
+              _evaluation_program(agent, envs.make("cartpole-swingup", obs_noise=0.1), 2, 1),
+              _evaluation_program(agent, envs.make("cartpole-swingup", physics="exact"), 2, 1),
+              _evaluation_program(agent, env, 3, 1), _evaluation_program(agent, env, 2, 2)]
+    assert len({id(p) for p in [program, *others]}) == 7
+    assert _evaluation_program(with_actor(agent, "prior"), env, 2, 1) is others[1]
+
+
 @pytest.fixture(scope="module")
 def zp_agent():
     agent = tiny("cfc-zp-det")

@@ -176,19 +176,39 @@ def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp
     assert "checkpoint saved" in err and f"make train RESUME={run}" in err and "Traceback" not in err
     interrupted = _steps(run)[-1]
     assert second <= interrupted < CHECKPOINTS[-1]
-    # 3: resume to the end: the same evaluation rows (bit for bit) and per-episode training rows.
-    result = _run(["train", "--resume", str(run)], cache)
+    # 3: resume to the end with --eval-prior turned on (a resume may change it: the training is the same): the
+    # same evaluation rows (bit for bit) and per-episode training rows; the resumed evaluations' rows gain the
+    # policy prior's return of each episode, the earlier rows keep theirs and an empty ``prior_return``; the
+    # progress line and summary give the prior's mean beside MPPI's. (The reference, eval_prior off, logs no
+    # such column: test_run_folder_holds_config_logs_checkpoints_plot_and_summary.)
+    result = _run(["train", "--resume", str(run), "--eval-prior"], cache)
     assert result.returncode == 0, result.stderr[-3000:]
     assert f"resuming {run} at {interrupted:,} env steps" in result.stderr
-    assert (run / "eval.csv").read_text() == (reference / "eval.csv").read_text()
     assert (run / "train.csv").read_text() == (reference / "train.csv").read_text()
+    with open(run / "eval.csv") as f:
+        assert csv.DictReader(f).fieldnames == ["env_step", "seed", "episode", "return", "effective_rank",
+                                                "prior_return"]
+    rows, planner = _rows(run / "eval.csv"), _rows(reference / "eval.csv")
+    # MPPI's episodes as without the prior's, bit for bit (the prior's play in a scan of their own)
+    assert [{k: v for k, v in r.items() if k != "prior_return"} for r in rows] == planner
+    assert all(r["prior_return"] == "" for r in rows if int(r["env_step"]) <= interrupted)
+    resumed = [r for r in rows if int(r["env_step"]) > interrupted]
+    prior = np.asarray([float(r["prior_return"]) for r in resumed])
+    assert len(resumed) >= 4 and np.all((prior >= 0) & (prior <= 1000))  # 2 seeds x 2 episodes, each its own
+    assert not np.allclose(prior, [float(r["return"]) for r in resumed])  # another actor
+    last = prior[-4:]
+    assert f"(prior {last.mean():.1f})" in result.stderr
     import json
 
-    starts = json.loads((run / "config.json").read_text())["provenance"]  # the start and both resumes
-    assert [entry["command"].endswith(f"train --resume {run}") for entry in starts] == [False, True, True]
+    config = json.loads((run / "config.json").read_text())
+    assert config["config"]["eval_prior"] is True
+    starts = config["provenance"]  # the start and both resumes
+    assert [entry["command"].endswith(f"train --resume {run}") for entry in starts] == [False, True, False]
+    assert starts[2]["command"].endswith(f"train --resume {run} --eval-prior")
     assert starts[0]["time"] <= starts[1]["time"] <= starts[2]["time"]
     summary = (run / "summary.md").read_text()
     assert "3 starts (resumed)" in summary and f"Started by `{starts[0]['command']}`." in summary
+    assert f"The policy prior alone on the same episodes: {last.mean():.1f} ± " in summary
 
 
 def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_path, cache):
@@ -264,36 +284,6 @@ def test_nan_in_a_loss_stops_the_run_and_keeps_the_last_good_checkpoint(referenc
     assert f"non-finite total_loss (NaN or Inf) at env step ~{last + 16:,}, seed 1" in str(error.value)
     assert f"last good checkpoint ({last:,} env steps) is kept" in str(error.value)
     assert _steps(run) == before and _rows(run / "eval.csv") == eval_before
-
-
-def test_a_run_resumed_with_eval_prior_logs_the_priors_returns_beside_mppis(reference, tmp_path, cache):
-    """``--eval-prior`` turned on for the last chunk of the reference (a resume may change it: the training is the
-    same): its evaluation's rows gain the policy prior's return of each episode, the earlier rows keep theirs and an
-    empty ``prior_return``; the progress line and summary give the prior's mean beside MPPI's. The reference itself
-    (eval_prior off) logs no such column (:func:`test_run_folder_holds_config_logs_checkpoints_plot_and_summary`)."""
-    import json
-
-    run = tmp_path / "prior"
-    shutil.copytree(reference, run)
-    shutil.rmtree(run / "checkpoints" / str(CHECKPOINTS[-1]))  # back to 1,902: one chunk and one evaluation left
-    result = _run(["train", "--resume", str(run), "--eval-prior"], cache)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert json.loads((run / "config.json").read_text())["config"]["eval_prior"] is True
-    with open(run / "eval.csv") as f:
-        assert csv.DictReader(f).fieldnames == ["env_step", "seed", "episode", "return", "effective_rank",
-                                                "prior_return"]
-    rows, planner = _rows(run / "eval.csv"), _rows(reference / "eval.csv")
-    assert [{**r, "prior_return": ""} for r in planner if int(r["env_step"]) <= CHECKPOINTS[-2]] == [
-        r for r in rows if int(r["env_step"]) <= CHECKPOINTS[-2]]
-    last = [r for r in rows if int(r["env_step"]) == CHECKPOINTS[-1]]
-    # MPPI's episodes as without the prior's, bit for bit (the prior's play in a scan of their own)
-    assert [{k: v for k, v in r.items() if k != "prior_return"} for r in last] == [
-        r for r in planner if int(r["env_step"]) == CHECKPOINTS[-1]]
-    prior = np.asarray([float(r["prior_return"]) for r in last])
-    assert len(last) == 4 and np.all((prior >= 0) & (prior <= 1000))  # 2 seeds x 2 episodes, each its own
-    assert not np.allclose(prior, [float(r["return"]) for r in last])  # another actor
-    assert f"(prior {prior.mean():.1f})" in result.stderr
-    assert f"The policy prior alone on the same episodes: {prior.mean():.1f} ± " in (run / "summary.md").read_text()
 
 
 def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
@@ -375,15 +365,27 @@ def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(refere
     assert mean == pytest.approx(returns.mean(), abs=0.06)
 
 
-def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monkeypatch, cache):
+def _refused(capsys, *args: str) -> str:
+    """The CLI run in this process on ``args``, which it must refuse with exit status 2: its stderr."""
+    from lnnmpc.train.cli import main
+
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as stopped:
+        main(list(args))
+    assert stopped.value.code == 2
+    return capsys.readouterr().err
+
+
+def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monkeypatch, cache, capsys):
     """``--actor prior``: the same checkpoint and episodes with the policy prior acting instead of MPPI, in a CSV
-    of its own on each backend; a misspelt actor is refused before anything runs."""
+    of its own on each backend; a misspelt actor is refused before anything runs. (4 episodes: the planner's
+    evaluation program is the one the tests above compiled.)"""
     import lnnmpc
 
     monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
-    planner = lnnmpc.evaluate(str(reference), episodes=2, seed=5, verbose=False)
-    prior = lnnmpc.evaluate(str(reference), episodes=2, seed=5, actor="prior", verbose=False)
-    assert os.path.basename(prior.path) == "mjx-prior-clean-2804.csv" and prior.returns.shape == (2, 2)
+    planner = lnnmpc.evaluate(str(reference), episodes=4, seed=5, verbose=False)
+    prior = lnnmpc.evaluate(str(reference), episodes=4, seed=5, actor="prior", verbose=False)
+    assert os.path.basename(prior.path) == "mjx-prior-clean-2804.csv" and prior.returns.shape == (2, 4)
     assert {r["actor"] for r in _rows(prior.path)} == {"prior"} and {r["actor"] for r in _rows(planner.path)} == {
         "planner"}
     assert np.all((prior.returns >= 0) & (prior.returns <= 1000))
@@ -393,11 +395,10 @@ def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monke
     assert "checkpoint 2,804 on dm_control with clean, acting with the prior: return " in result.stdout
     rows = _rows(reference / "evals" / "dm_control-prior-clean-2804.csv")
     assert len(rows) == 2 and {r["actor"] for r in rows} == {"prior"}
-    bad = _run(["eval", str(reference), "--actor", "mpc"], cache)
-    assert bad.returncode == 2 and "unknown actor 'mpc'; known: planner, prior" in bad.stderr
+    assert "unknown actor 'mpc'; known: planner, prior" in _refused(capsys, "eval", str(reference), "--actor", "mpc")
 
 
-def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache):
+def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache, capsys):
     import imageio_ffmpeg
 
     out = tmp_path / "episode.mp4"
@@ -422,8 +423,7 @@ def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache):
     assert len(prior_frames) == 12
     first, last = (np.abs(prior_frames[i][40:] - frames[i][40:]).mean() for i in (0, -1))
     assert 0 < first < 3 and last > 1.5 * first  # one initial state (2.2 here), then the prior's actions (4.8)
-    bad = _run(["video", str(reference), "--actor", "mpc"], cache)
-    assert bad.returncode == 2 and "unknown actor 'mpc'; known: planner, prior" in bad.stderr
+    assert "unknown actor 'mpc'; known: planner, prior" in _refused(capsys, "video", str(reference), "--actor", "mpc")
 
 
 def test_video_films_many_episodes_into_a_folder_and_keeps_the_falls(reference, tmp_path, cache):

@@ -18,14 +18,36 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc.agents.registry import acting_latent
+from lnnmpc.train.evaluate import program_key
 from lnnmpc.train.loop import play_episodes
 
 
-@functools.lru_cache(maxsize=8)
+class _SameProgram:
+    """An (agent, env) pair that hashes and compares by what its programs compute
+    (:func:`lnnmpc.train.evaluate.program_key`; by identity where that is None)."""
+
+    def __init__(self, agent, env):
+        self.agent, self.env = agent, env
+        self.key = program_key(agent, env) or (id(agent), id(env))
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _SameProgram) and self.key == other.key
+
+
 def rollout_program(agent, env, episodes: int, steps: int | None = None):
     """The compiled ``(state, key) -> records`` of :func:`rollout` (time-major leaves (T, E, ...)); the agent
-    state is an argument, so one compilation serves every checkpoint of a run. The episodes are the trainer's
-    evaluation's (:func:`lnnmpc.train.loop.play_episodes`): the same key plays the same episodes."""
+    state is an argument, so one compilation serves every checkpoint of a run, and an agent of the same class and
+    configuration on an equal environment (another policy object of the same run) reuses it too. The episodes are
+    the trainer's evaluation's (:func:`lnnmpc.train.loop.play_episodes`): the same key plays the same episodes."""
+    return _rollout_program(_SameProgram(agent, env), episodes, steps)
+
+
+@functools.lru_cache(maxsize=8)
+def _rollout_program(pair: _SameProgram, episodes: int, steps: int | None):
+    agent, env = pair.agent, pair.env
 
     def episodes_from(state, key):  # reset and scan in one compiled program (eager MJX resets are slow)
         def record(s, carry, action, nxt):
@@ -36,6 +58,9 @@ def rollout_program(agent, env, episodes: int, steps: int | None = None):
         return play_episodes(agent, state, env, key, episodes, steps, record)[1]
 
     return jax.jit(episodes_from)
+
+
+rollout_program.cache_info = _rollout_program.cache_info
 
 
 def rollout(agent, state, env, key: jax.Array, episodes: int, steps: int | None = None) -> dict[str, np.ndarray]:

@@ -20,6 +20,7 @@ act alone instead of MPPI (:mod:`lnnmpc.agents.actor`): what planning adds to th
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
 import sys
@@ -28,7 +29,7 @@ import jax
 import numpy as np
 
 from lnnmpc import envs
-from lnnmpc.agents.actor import check_actor, with_actor
+from lnnmpc.agents.actor import PriorActing, check_actor, with_actor
 from lnnmpc.agents.overrides import apply_planner_overrides
 from lnnmpc.train import runfolder
 from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
@@ -120,9 +121,64 @@ def _restored(policy: Policy, run: str) -> Policy:
     if policy.checkpoint not in all_steps(run):
         agent_state = restore_policy(run, jax.jit(jax.vmap(policy.loop.agent.init))(keys))
         return dataclasses.replace(policy, agent_state=agent_state)
-    like = jax.eval_shape(jax.vmap(policy.loop.init), keys)
-    state, _ = restore_checkpoint(run, policy.checkpoint, like)
+    state, _ = restore_checkpoint(run, policy.checkpoint, _state_shapes(policy.config, policy.loop, keys))
     return dataclasses.replace(policy, agent_state=state.agent)
+
+
+# Compiled evaluation programs of this process, by what they compute (see program_key): a second evaluation with
+# the same agent configuration, environment and sizes (another checkpoint, run folder or seed of keys) runs the
+# program already traced and compiled instead of tracing it again (~10-20 s on a CPU for MJX physics and MPPI).
+_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+_PROGRAMS_KEPT = 8
+
+
+def _agent_key(agent) -> tuple:
+    """What an agent computes with: its class and configuration (the prior acting: that, wrapped)."""
+    if isinstance(agent, PriorActing):
+        return ("prior", *_agent_key(agent.agent))
+    return (type(agent).__module__, type(agent).__qualname__, agent.config)
+
+
+def program_key(agent, env, *sizes) -> tuple | None:
+    """A key equal for programs over ``agent`` and ``env`` (and ``sizes``: episodes, seeds, steps) that compile
+    alike: the agent's class and configuration, the environment's task, physics and corruptions, the default
+    device. None where the agent's configuration cannot be hashed (then nothing is reused)."""
+    key = (_agent_key(agent), env.spec, env.action_repeat, env.physics_options, env.corruption, *sizes,
+           jax.devices()[0])
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
+
+
+def _evaluation_program(agent, env, episodes: int, seeds: int):
+    """``jit(vmap(evaluate))`` of a one-device loop over ``agent`` and ``env``, reused across calls (LRU of 8)."""
+    key = program_key(agent, env, episodes, seeds)
+    if key is not None and key in _PROGRAMS:
+        _PROGRAMS.move_to_end(key)
+        return _PROGRAMS[key]
+    program = SeedPlacement(1).compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=episodes)).evaluate)
+    if key is not None:
+        _PROGRAMS[key] = program
+        while len(_PROGRAMS) > _PROGRAMS_KEPT:
+            _PROGRAMS.popitem(last=False)
+    return program
+
+
+_SHAPES: collections.OrderedDict = collections.OrderedDict()
+
+
+def _state_shapes(config: TrainConfig, loop: TrainingLoop, keys: jax.Array):
+    """The training state's shapes and dtypes for ``config`` (``eval_shape`` of the seeds' ``loop.init``, which
+    traces environments, agent and replay: seconds), reused for equal configurations in this process."""
+    key = repr(config)  # a frozen dataclass of plain values and dicts: equal configurations, equal text
+    if key not in _SHAPES:
+        _SHAPES[key] = jax.eval_shape(jax.vmap(loop.init), keys)
+        while len(_SHAPES) > _PROGRAMS_KEPT:
+            _SHAPES.popitem(last=False)
+    _SHAPES.move_to_end(key)
+    return _SHAPES[key]
 
 
 def mjx_evaluator(agent, env, episodes: int, seeds: int):
@@ -130,9 +186,10 @@ def mjx_evaluator(agent, env, episodes: int, seeds: int):
     ``agent.act`` (MPPI; the prior alone under :func:`lnnmpc.agents.actor.with_actor`): returns
     ``run(agent_state, key) -> (seeds, episodes)`` returns, the seeds' keys split from ``key``; the episodes are
     those the trainer's evaluations play with the same key (:func:`lnnmpc.train.loop.play_episodes`). Call ``run``
-    for as many agent states as needed."""
+    for as many agent states as needed; a later evaluator of an equal agent configuration, environment and sizes
+    in the same process runs the same compiled program."""
     placement = SeedPlacement(1)
-    program = placement.compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=episodes)).evaluate)
+    program = _evaluation_program(agent, env, episodes, seeds)
 
     def run(agent_state, key: jax.Array) -> np.ndarray:
         keys = placement.put(jax.random.split(key, seeds))
