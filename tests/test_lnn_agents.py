@@ -115,19 +115,22 @@ def test_evaluations_of_equal_agents_and_environments_share_one_program():
     corruptions or sizes get their own (nothing is traced or compiled here: jit is lazy)."""
     from lnnmpc import envs
     from lnnmpc.agents.actor import with_actor
-    from lnnmpc.train.evaluate import _evaluation_program, with_planner
+    from lnnmpc.train.evaluate import SameProgram, _evaluation_program, with_planner
+
+    def program(agent, env, episodes, seeds):
+        return _evaluation_program(SameProgram(agent, env), episodes, seeds)
 
     env = envs.make("cartpole-swingup")
     agent = make_agent("cfc-op-det", env.observation_size, env.action_size)
-    program = _evaluation_program(agent, env, 2, 1)
-    assert _evaluation_program(type(agent)(agent.config), envs.make("cartpole-swingup"), 2, 1) is program
-    others = [_evaluation_program(with_planner(agent, {"plan_horizon": 5}), env, 2, 1),
-              _evaluation_program(with_actor(agent, "prior"), env, 2, 1),
-              _evaluation_program(agent, envs.make("cartpole-swingup", obs_noise=0.1), 2, 1),
-              _evaluation_program(agent, envs.make("cartpole-swingup", physics="exact"), 2, 1),
-              _evaluation_program(agent, env, 3, 1), _evaluation_program(agent, env, 2, 2)]
-    assert len({id(p) for p in [program, *others]}) == 7
-    assert _evaluation_program(with_actor(agent, "prior"), env, 2, 1) is others[1]
+    first = program(agent, env, 2, 1)
+    assert program(type(agent)(agent.config), envs.make("cartpole-swingup"), 2, 1) is first
+    others = [program(with_planner(agent, {"plan_horizon": 5}), env, 2, 1),
+              program(with_actor(agent, "prior"), env, 2, 1),
+              program(agent, envs.make("cartpole-swingup", obs_noise=0.1), 2, 1),
+              program(agent, envs.make("cartpole-swingup", physics="exact"), 2, 1),
+              program(agent, env, 3, 1), program(agent, env, 2, 2)]
+    assert len({id(p) for p in [first, *others]}) == 7
+    assert program(with_actor(agent, "prior"), env, 2, 1) is others[1]
 
 
 @pytest.fixture(scope="module")

@@ -18,23 +18,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc.agents.registry import acting_latent
-from lnnmpc.train.evaluate import program_key
+from lnnmpc.train.evaluate import SameProgram
 from lnnmpc.train.loop import play_episodes
-
-
-class _SameProgram:
-    """An (agent, env) pair that hashes and compares by what its programs compute
-    (:func:`lnnmpc.train.evaluate.program_key`; by identity where that is None)."""
-
-    def __init__(self, agent, env):
-        self.agent, self.env = agent, env
-        self.key = program_key(agent, env) or (id(agent), id(env))
-
-    def __hash__(self) -> int:
-        return hash(self.key)
-
-    def __eq__(self, other) -> bool:
-        return isinstance(other, _SameProgram) and self.key == other.key
 
 
 def rollout_program(agent, env, episodes: int, steps: int | None = None):
@@ -42,11 +27,11 @@ def rollout_program(agent, env, episodes: int, steps: int | None = None):
     state is an argument, so one compilation serves every checkpoint of a run, and an agent of the same class and
     configuration on an equal environment (another policy object of the same run) reuses it too. The episodes are
     the trainer's evaluation's (:func:`lnnmpc.train.loop.play_episodes`): the same key plays the same episodes."""
-    return _rollout_program(_SameProgram(agent, env), episodes, steps)
+    return _rollout_program(SameProgram(agent, env), episodes, steps)
 
 
 @functools.lru_cache(maxsize=8)
-def _rollout_program(pair: _SameProgram, episodes: int, steps: int | None):
+def _rollout_program(pair: SameProgram, episodes: int, steps: int | None):
     agent, env = pair.agent, pair.env
 
     def episodes_from(state, key):  # reset and scan in one compiled program (eager MJX resets are slow)

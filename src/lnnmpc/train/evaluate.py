@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import os
 import sys
 
@@ -125,13 +126,6 @@ def _restored(policy: Policy, run: str) -> Policy:
     return dataclasses.replace(policy, agent_state=state.agent)
 
 
-# Compiled evaluation programs of this process, by what they compute (see program_key): a second evaluation with
-# the same agent configuration, environment and sizes (another checkpoint, run folder or seed of keys) runs the
-# program already traced and compiled instead of tracing it again (~10-20 s on a CPU for MJX physics and MPPI).
-_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
-_PROGRAMS_KEPT = 8
-
-
 def _agent_key(agent) -> tuple:
     """What an agent computes with: its class and configuration (the prior acting: that, wrapped)."""
     if isinstance(agent, PriorActing):
@@ -139,31 +133,34 @@ def _agent_key(agent) -> tuple:
     return (type(agent).__module__, type(agent).__qualname__, agent.config)
 
 
-def program_key(agent, env, *sizes) -> tuple | None:
-    """A key equal for programs over ``agent`` and ``env`` (and ``sizes``: episodes, seeds, steps) that compile
-    alike: the agent's class and configuration, the environment's task, physics and corruptions, the default
-    device. None where the agent's configuration cannot be hashed (then nothing is reused)."""
-    key = (_agent_key(agent), env.spec, env.action_repeat, env.physics_options, env.corruption, *sizes,
-           jax.devices()[0])
-    try:
-        hash(key)
-    except TypeError:
-        return None
-    return key
+class SameProgram:
+    """An (agent, env) pair that hashes and compares by what programs over it compute: the agent's class and
+    configuration, the environment's task, physics and corruptions, the default device (by identity where the
+    agent's configuration cannot be hashed). A ``functools.lru_cache`` key: another agent object of the same
+    configuration on an equal environment (a second evaluation of a run, a copy of its folder) finds the program
+    already traced and compiled (~10-20 s on a CPU for MJX physics and MPPI)."""
+
+    def __init__(self, agent, env):
+        self.agent, self.env = agent, env
+        key = (_agent_key(agent), env.spec, env.action_repeat, env.physics_options, env.corruption, jax.devices()[0])
+        try:
+            hash(key)
+        except TypeError:
+            key = (id(agent), id(env))  # the entry holds both, so their ids stay theirs while it lives
+        self.key = key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, SameProgram) and self.key == other.key
 
 
-def _evaluation_program(agent, env, episodes: int, seeds: int):
-    """``jit(vmap(evaluate))`` of a one-device loop over ``agent`` and ``env``, reused across calls (LRU of 8)."""
-    key = program_key(agent, env, episodes, seeds)
-    if key is not None and key in _PROGRAMS:
-        _PROGRAMS.move_to_end(key)
-        return _PROGRAMS[key]
-    program = SeedPlacement(1).compile(TrainingLoop(agent, env, env, LoopConfig(eval_episodes=episodes)).evaluate)
-    if key is not None:
-        _PROGRAMS[key] = program
-        while len(_PROGRAMS) > _PROGRAMS_KEPT:
-            _PROGRAMS.popitem(last=False)
-    return program
+@functools.lru_cache(maxsize=8)
+def _evaluation_program(pair: SameProgram, episodes: int, seeds: int):
+    """``jit(vmap(evaluate))`` of a one-device loop over ``pair``'s agent and env (seeds: part of the key only)."""
+    loop = TrainingLoop(pair.agent, pair.env, pair.env, LoopConfig(eval_episodes=episodes))
+    return SeedPlacement(1).compile(loop.evaluate)
 
 
 _SHAPES: collections.OrderedDict = collections.OrderedDict()
@@ -175,7 +172,7 @@ def _state_shapes(config: TrainConfig, loop: TrainingLoop, keys: jax.Array):
     key = repr(config)  # a frozen dataclass of plain values and dicts: equal configurations, equal text
     if key not in _SHAPES:
         _SHAPES[key] = jax.eval_shape(jax.vmap(loop.init), keys)
-        while len(_SHAPES) > _PROGRAMS_KEPT:
+        while len(_SHAPES) > 8:
             _SHAPES.popitem(last=False)
     _SHAPES.move_to_end(key)
     return _SHAPES[key]
@@ -189,7 +186,7 @@ def mjx_evaluator(agent, env, episodes: int, seeds: int):
     for as many agent states as needed; a later evaluator of an equal agent configuration, environment and sizes
     in the same process runs the same compiled program."""
     placement = SeedPlacement(1)
-    program = _evaluation_program(agent, env, episodes, seeds)
+    program = _evaluation_program(SameProgram(agent, env), episodes, seeds)
 
     def run(agent_state, key: jax.Array) -> np.ndarray:
         keys = placement.put(jax.random.split(key, seeds))
