@@ -204,13 +204,15 @@ def test_cartpole_episode_stats_of_known_trajectories():
 
 
 def test_cartpole_analysis_reports_every_seed_and_refuses_other_tasks(tmp_path, capsys):
+    """(2 episodes of 40 agent steps: the rollout program the report's test above compiled, reused in the same
+    process)"""
     run = _untrained_run(tmp_path / "run")
-    assert cartpole.main([run, "--episodes", "2", "--length", "30"]) == 0
+    assert cartpole.main([run, "--episodes", "2", "--length", "40"]) == 0
     with open(os.path.join(run, "analysis", "500", "cartpole_episodes.csv")) as f:
         rows = list(csv.DictReader(f))
     assert [(r["env_step"], r["seed"], r["episodes"]) for r in rows] == [("500", "0", "2")]
     row = {k: float(rows[0][k]) for k in ("return", *cartpole.STATS)}
-    assert 0 <= row["return"] <= 30 and row["turns"] > 0  # an untrained agent moves the pole, rarely up
+    assert 0 <= row["return"] <= 40 and row["turns"] > 0  # an untrained agent moves the pole, rarely up
     assert 0 <= row["sparse_region_share"] <= row["upright_share"] <= 1 and row["mean_abs_cart"] >= 0
     assert "| seed | return | turns |" in capsys.readouterr().out
     other = tmp_path / "acrobot"

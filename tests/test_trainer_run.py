@@ -1,5 +1,6 @@
 """The trainer end to end at CI size, in subprocesses as a user runs it: run folder, the agent learns, kill/Ctrl-C
 and exact resume, seeds sharded over two (forced host) devices, NaN stop, evaluation on MJX and on dm_control, video.
+(Evaluations, which need no fresh process, run the CLI or ``lnnmpc.evaluate`` in this one.)
 
 One reference run (2 seeds) is trained once per module; the other runs use the same configuration and hit
 XLA's persistent compilation cache (a folder per test session), so they mostly pay for tracing. The reference is
@@ -349,31 +350,40 @@ def test_trained_agent_beats_its_untrained_self(reference, cache):
     assert (after > before + 40).all() and after.mean() > 90, (before, after)
 
 
-def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(reference, cache):
+def _cli_in_process(capsys, *args: str, refused: bool = False) -> tuple[str, str]:
+    """The CLI run in this process on ``args`` (as ``make eval`` runs it, without a Python start-up and imports of
+    its own): its stdout and stderr. It must succeed (no SystemExit), or with ``refused`` exit with status 2."""
+    from lnnmpc.train.cli import main
+
+    capsys.readouterr()
+    if refused:
+        with pytest.raises(SystemExit) as stopped:
+            main(list(args))
+        assert stopped.value.code == 2
+    else:
+        main(list(args))
+    return capsys.readouterr()
+
+
+def test_make_eval_on_dm_control_with_noise_and_delay_prints_mean_and_std(reference, monkeypatch, cache, capsys):
     """The latest checkpoint's policy on the original dm_control simulator, 2 seeds x 2 episodes."""
-    result = _run(["eval", str(reference), "--episodes", "2", "--backend", "dm_control", "--obs", "noise=0.1,delay=2"],
-                  cache)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert "checkpoint 2,804 on dm_control with delay2-noise0.1: return " in result.stdout and " ± " in result.stdout
+    monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
+    stdout, stderr = _cli_in_process(capsys, "eval", str(reference), "--episodes", "2", "--backend", "dm_control",
+                                     "--obs", "noise=0.1,delay=2")
+    assert "checkpoint 2,804 on dm_control with delay2-noise0.1: return " in stdout and " ± " in stdout
     # a live line on stderr while the episodes run, ending at the episode's last agent step
-    assert "500/500 agent steps of 2 seed(s) x 2 episodes on dm_control  " in result.stderr
+    assert "500/500 agent steps of 2 seed(s) x 2 episodes on dm_control  " in stderr
     rows = _rows(reference / "evals" / "dm_control-delay2-noise0.1-2804.csv")
     assert [(int(r["seed"]), int(r["episode"])) for r in rows] == [(0, 0), (0, 1), (1, 0), (1, 1)]
     returns = np.asarray([float(r["return"]) for r in rows])
     assert np.all((returns > 0) & (returns <= 1000)) and {r["backend"] for r in rows} == {"dm_control"}
-    mean = float(result.stdout.split("return ")[1].split(" ±")[0])
+    mean = float(stdout.split("return ")[1].split(" ±")[0])
     assert mean == pytest.approx(returns.mean(), abs=0.06)
 
 
 def _refused(capsys, *args: str) -> str:
     """The CLI run in this process on ``args``, which it must refuse with exit status 2: its stderr."""
-    from lnnmpc.train.cli import main
-
-    capsys.readouterr()
-    with pytest.raises(SystemExit) as stopped:
-        main(list(args))
-    assert stopped.value.code == 2
-    return capsys.readouterr().err
+    return _cli_in_process(capsys, *args, refused=True)[1]
 
 
 def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monkeypatch, cache, capsys):
@@ -390,9 +400,9 @@ def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monke
         "planner"}
     assert np.all((prior.returns >= 0) & (prior.returns <= 1000))
     assert not np.allclose(prior.returns, planner.returns)  # another actor, not MPPI under another name
-    result = _run(["eval", str(reference), "--episodes", "1", "--backend", "dm_control", "--actor", "prior"], cache)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert "checkpoint 2,804 on dm_control with clean, acting with the prior: return " in result.stdout
+    stdout, _ = _cli_in_process(capsys, "eval", str(reference), "--episodes", "1", "--backend", "dm_control",
+                                "--actor", "prior")
+    assert "checkpoint 2,804 on dm_control with clean, acting with the prior: return " in stdout
     rows = _rows(reference / "evals" / "dm_control-prior-clean-2804.csv")
     assert len(rows) == 2 and {r["actor"] for r in rows} == {"prior"}
     assert "unknown actor 'mpc'; known: planner, prior" in _refused(capsys, "eval", str(reference), "--actor", "mpc")
