@@ -110,7 +110,10 @@ def test_reset_matches_reset_to_of_sampled_state(acrobot):
     np.testing.assert_allclose(np.asarray(state.physics.qpos), np.asarray(qpos), atol=1e-6)
 
 
-@pytest.mark.parametrize("task,options", [("walker-run", {}), ("cartpole-swingup", {"obs_noise": 0.1, "delay": 2})])
+# walker compiles with XLA's optimisations (conftest): under jax_disable_most_optimizations a restarted walker's qpos
+# differs by 1 ulp between the reset inside step_or_reset and reset's own program; cartpole's agree either way
+@pytest.mark.parametrize("task,options", [pytest.param("walker-run", {}, marks=pytest.mark.full_optimisation),
+                                          ("cartpole-swingup", {"obs_noise": 0.1, "delay": 2})])
 def test_step_or_reset_is_a_step_or_a_reset(task, options):
     """The training loop's one physics program (Env.step_or_reset) gives what step gives where an environment runs
     on and what reset gives where it restarts: observations, rewards, counters, keys, corruption state and

@@ -30,7 +30,10 @@ def _final_states(task: str, options: envs.PhysicsOptions, steps: int) -> np.nda
     return np.asarray(jax.jit(jax.vmap(episode))(jax.random.split(jax.random.key(5), 4)))
 
 
-@pytest.mark.parametrize("task,iterations,steps", [("cartpole-swingup", 2, 120), ("walker-run", 3, 8)])
+# walker compiles with XLA's optimisations (conftest): under jax_disable_most_optimizations the two solvers' walker
+# states differ by round-off that 8 steps of contacts grow to 4e-3; cartpole's stay within 1e-5 either way
+@pytest.mark.parametrize("task,iterations,steps", [
+    ("cartpole-swingup", 2, 120), pytest.param("walker-run", 3, 8, marks=pytest.mark.full_optimisation)])
 def test_unrolled_solver_equals_mjx_while_loop(task, iterations, steps):
     options = envs.PhysicsOptions(iterations=iterations, ls_iterations=3)
     looped = _final_states(task, options, steps)
