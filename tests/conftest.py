@@ -45,8 +45,9 @@ if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
 # solver) are marked full_optimisation (_test_compile_effort below); their cartpole cases agree bit for bit and to
 # 1e-5 at level 0 too and compile there (22 s against 36 s, 18 s against 24 s). Every other file turns the flag on
 # for its duration (_compile_effort below). Trainer subprocesses keep level 1.
-# Measured so (this checkout, this 2-core CPU, 2026-12-02): 677.6 s of pytest, 435 passed (the same suite
-# without the per-test marks and the in-process dm_control evaluations: 745.7 s and 822.3 s that day; 1,048.3 s
+# Measured so (this checkout, this 2-core CPU, 2026-12-02): 720.0 s of pytest, 435 passed (the runs of that day
+# vary by ~15% with the machine's other load: before the per-test marks, the in-process dm_control evaluations
+# and the video launches at level 0, 745.7 s and 822.3 s; with all but the last, 677.6 s and 791.8 s; 1,048.3 s
 # on a fresh clone earlier that day).
 OPTIMISED_FILES = ("test_trainer_run.py",)
 

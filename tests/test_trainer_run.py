@@ -408,12 +408,17 @@ def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monke
     assert "unknown actor 'mpc'; known: planner, prior" in _refused(capsys, "eval", str(reference), "--actor", "mpc")
 
 
+# The video launches: offscreen OpenGL, and jax_disable_most_optimizations (their few agent steps run in
+# milliseconds, compiling the acting program is their cost; conftest)
+_FILMING = {"MUJOCO_GL": "egl", "JAX_DISABLE_MOST_OPTIMIZATIONS": "1"}
+
+
 def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache, capsys):
     import imageio_ffmpeg
 
     out = tmp_path / "episode.mp4"
     result = _run(["video", str(reference), "--out", str(out), "--max-steps", "12", "--width", "96",
-                   "--height", "72"], cache, MUJOCO_GL="egl")
+                   "--height", "72"], cache, **_FILMING)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "12 frames at 50 fps" in result.stdout
     reader = imageio_ffmpeg.read_frames(str(out))
@@ -423,7 +428,7 @@ def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache, ca
     assert frames[-1][40:].std() > 5  # a rendered scene below the text band, not a blank image
     # the policy prior alone on the same episode: its own default file, the same first picture, other actions
     prior = _run(["video", str(reference), "--actor", "prior", "--max-steps", "12", "--width", "96",
-                  "--height", "72"], cache, MUJOCO_GL="egl")
+                  "--height", "72"], cache, **_FILMING)
     assert prior.returncode == 0, prior.stderr[-3000:]
     path = reference / "videos" / "2804-prior.mp4"
     assert f"12 frames at 50 fps -> {path}" in prior.stdout
@@ -445,7 +450,7 @@ def test_video_films_many_episodes_into_a_folder_and_keeps_the_falls(reference, 
 
     folder = tmp_path / "films"
     result = _run(["video", str(reference), "--out", str(folder), "--episodes", "3", "--falls-below", "1e9",
-                   "--max-steps", "6", "--width", "64", "--height", "48"], cache, MUJOCO_GL="egl")
+                   "--max-steps", "6", "--width", "64", "--height", "48"], cache, **_FILMING)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "returns of 3 episodes: mean " in result.stdout and "filmed below 1e+09: 0 (" in result.stdout
     films = sorted(folder.iterdir())
