@@ -101,12 +101,17 @@ def pytest_collection_modifyitems(session, config, items):
     items.sort(key=_file_rank)
 
 
+def _module_disables_optimizations(request) -> bool:
+    """Whether the requesting test's file compiles with jax_disable_most_optimizations (not in OPTIMISED_FILES)."""
+    return request.path.name not in OPTIMISED_FILES
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _compile_effort(request):
     """Compiles the module's programs with jax_disable_most_optimizations unless it is in OPTIMISED_FILES."""
     import jax
 
-    jax.config.update("jax_disable_most_optimizations", request.path.name not in OPTIMISED_FILES)
+    jax.config.update("jax_disable_most_optimizations", _module_disables_optimizations(request))
     yield
     jax.config.update("jax_disable_most_optimizations", False)
 
@@ -121,4 +126,4 @@ def _test_compile_effort(request):
         return
     jax.config.update("jax_disable_most_optimizations", False)
     yield
-    jax.config.update("jax_disable_most_optimizations", request.path.name not in OPTIMISED_FILES)  # the module's
+    jax.config.update("jax_disable_most_optimizations", _module_disables_optimizations(request))
