@@ -138,6 +138,27 @@ def test_programs_compiled_ahead_in_parallel_run_and_fall_back_on_other_argument
     assert first.compiled is None and "refused its arguments" in capsys.readouterr().err
 
 
+def test_programs_lowered_now_compile_one_by_one_when_first_called():
+    import jax
+    import jax.numpy as jnp
+
+    from lnnmpc.train.sharding import compile_ahead, pending_compilations
+
+    double, total = jax.jit(lambda x: 2 * x), jax.jit(lambda x, y: (x * y).sum())
+    done = []
+    first, second = compile_ahead([(double, (jnp.ones(3),)), (total, (jnp.ones(3), jnp.ones(3)))], parallel=False,
+                                  on_done=lambda index, program: done.append(index))
+    assert first.lower_s > 0 and second.lower_s > 0  # both lowered here, in the order given
+    assert pending_compilations() == 0 and done == [] and not first.done() and not second.done()
+    assert first.compiled is None and second.compiled is None  # nothing compiled yet
+    np.testing.assert_array_equal(second.ready()(jnp.arange(3.0), jnp.full(3, 2.0)), 6.0)  # compiled on this thread
+    assert done == [1] and second.done() and second.compile_s > 0 and not first.done()
+    np.testing.assert_array_equal(first(jnp.arange(3.0)), [0.0, 2.0, 4.0])  # the first call compiles it
+    assert done == [1, 0] and first.done() and isinstance(first.compiled, jax.stages.Compiled)
+    np.testing.assert_array_equal(first(jnp.arange(3.0) + 1), [2.0, 4.0, 6.0])
+    assert done == [1, 0]  # compiled once
+
+
 def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):
     run = str(tmp_path / "run")
     os.makedirs(run)

@@ -85,13 +85,18 @@ class AheadOfTime:
     def __init__(self, jitted: Callable, compiled=None, lower_s: float = 0.0):
         self.jitted, self.compiled, self.lower_s = jitted, compiled, lower_s
         self.compile_s, self.done_at = 0.0, None
+        self.compile_later: Callable | None = None  # set for a program lowered now and compiled on first use
 
     def done(self) -> bool:
-        """Whether the compilation has ended (the first call would not wait)."""
-        return not isinstance(self.compiled, Future) or self.compiled.done()
+        """Whether the compilation has ended (the first call would neither wait nor compile)."""
+        return self.compile_later is None and (not isinstance(self.compiled, Future) or self.compiled.done())
 
     def ready(self) -> AheadOfTime:
-        """Waits for the background compilation, if any (its errors are raised here); returns self."""
+        """Waits for the background compilation, if any (its errors are raised here), or compiles a program
+        lowered with ``parallel=False`` on this thread; returns self."""
+        if self.compile_later is not None:
+            compile_now, self.compile_later = self.compile_later, None
+            self.compiled = compile_now()
         if isinstance(self.compiled, Future):
             self.compiled = self.compiled.result()
         return self
@@ -108,7 +113,8 @@ class AheadOfTime:
 
 
 def compile_ahead(jobs: list[tuple[Callable, tuple]],
-                  on_done: Callable[[int, AheadOfTime], None] | None = None) -> list[AheadOfTime]:
+                  on_done: Callable[[int, AheadOfTime], None] | None = None,
+                  parallel: bool = True) -> list[AheadOfTime]:
     """Starts compiling every ``(jitted, example_args)`` job at once, in threads, and returns without waiting
     (XLA compiles without the GIL, so several programs build in parallel on a machine with several cores: the
     trainer's seed phase, update burst, training chunk and evaluation programs then cost about the slowest one's
@@ -120,17 +126,27 @@ def compile_ahead(jobs: list[tuple[Callable, tuple]],
     takes longest to compile first), each handed to a compiling thread as soon as it is lowered. Traced
     concurrently in threads, JAX can lay out shared inner functions differently: the same computation, but other
     programs for XLA's persistent compilation cache, which a resumed run or an evaluation (jitted one at a time)
-    then misses and compiles again."""
-    pool = ThreadPoolExecutor(max_workers=max(1, len(jobs)), thread_name_prefix="compile-ahead")
+    then misses and compiles again.
+
+    ``parallel=False`` lowers every program now, in the order given, and compiles none: each compiles on this
+    thread when first called (or :meth:`AheadOfTime.ready`). The order in which programs are traced decides
+    details of the programs (XLA's private functions are numbered as JAX first meets them: tracing the evaluation
+    before the training chunk adds one to the chunk's), so lowering in a fixed order gives the same programs, and
+    the same persistent-cache entries, whether compiled in threads or one by one."""
+    pool = ThreadPoolExecutor(max_workers=max(1, len(jobs)), thread_name_prefix="compile-ahead") if parallel else None
     programs = []
     for index, (jitted, args) in enumerate(jobs):
         start = time.perf_counter()
         lowered = jitted.lower(*args)
         program = AheadOfTime(jitted, lower_s=time.perf_counter() - start)
-        program.compiled = pool.submit(_compile, lowered, program, index, on_done)
-        _track(program.compiled)
+        if pool is None:
+            program.compile_later = functools.partial(_compile, lowered, program, index, on_done)
+        else:
+            program.compiled = pool.submit(_compile, lowered, program, index, on_done)
+            _track(program.compiled)
         programs.append(program)
-    pool.shutdown(wait=False)  # the threads end with their compilations
+    if pool is not None:
+        pool.shutdown(wait=False)  # the threads end with their compilations
     return programs
 
 

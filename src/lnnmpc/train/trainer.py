@@ -19,7 +19,8 @@ end), the evaluations and checkpoints may fall at other steps than in a run star
 imports, devices, the checks above, restoring a checkpoint; Linux only), ``compile`` (the programs, in parallel
 threads, where ``compile_ahead``; a second row for the training chunk's rest, which compiles while the seed phase
 and update burst run; the evaluation's finishes while the first chunks run; ``compile.csv`` gives each program's
-seconds), ``initialise`` (the new state; its compilation too where not compiled ahead), ``seed_phase``,
+seconds; where not compiled ahead, two rows after the seed phase: the training chunk's lowering, then its
+compilation), ``initialise`` (the new state; its compilation too where not compiled ahead), ``seed_phase``,
 ``update_burst``, ``train_chunk``, ``evaluate``, ``checkpoint``; their sum is the process's time up to its last
 checkpoint, less the host's bookkeeping between chunks.
 
@@ -51,7 +52,7 @@ from lnnmpc.train.setup import Setup, enable_compile_cache, validate
 from lnnmpc.train.sharding import AheadOfTime, SeedPlacement, compile_ahead
 
 TIMING_FILE = "timing.csv"  # wall seconds of each phase (kept apart from train.csv, which is deterministic)
-COMPILE_FILE = "compile.csv"  # seconds to lower and compile each program compiled ahead
+COMPILE_FILE = "compile.csv"  # seconds to lower and compile each program compiled ahead (and the chunk)
 # eval.csv's columns after env_step, seed and episode, in order (TrainingLoop.evaluate_logged; prior_return only
 # with eval_prior)
 EVAL_COLUMNS = ("return", "effective_rank", "prior_return")
@@ -110,21 +111,38 @@ class _Run:
         jobs = [(name, self._chunk_program(name, length), (state,)) for name, length in names]
         jobs += [("init", self.init, (keys,))] if initialise else []
         jobs += [("finite", self.finite, (state.agent,)), ("evaluate", self.evaluate, (state.agent, keys))]
-        start, lock, env_step = time.perf_counter(), threading.Lock(), self.counters["env_steps"]
-
-        def written(index: int, program) -> None:  # in the compiling thread
-            with lock:
-                runfolder.append_csv(os.path.join(self.run, COMPILE_FILE), [{
-                    "env_step": env_step, "program": jobs[index][0], "lower_s": round(program.lower_s, 4),
-                    "compile_s": round(program.compile_s, 4), "ready_s": round(program.done_at - start, 4)}])
-
-        programs = dict(zip([name for name, _, _ in jobs],
-                            compile_ahead([job[1:] for job in jobs], on_done=written), strict=True))
+        programs = dict(zip([name for name, _, _ in jobs], compile_ahead(
+            [job[1:] for job in jobs], on_done=self._compile_rows([name for name, _, _ in jobs])), strict=True))
         for name in programs.keys() - {"train_chunk", "evaluate"}:  # those two go on compiling
             programs[name].ready()
         self.init, self.finite = programs.get("init", self.init), programs["finite"]
         self.evaluate = programs["evaluate"]  # its first call waits for it
         self._chunk_fns.update({(name, length): programs[name] for name, length in names})
+
+    def _compile_rows(self, names: list[str]):
+        """``on_done`` for :func:`compile_ahead` over programs ``names``: appends each program's row to compile.csv
+        as its compilation ends (``ready_s`` counted from now)."""
+        start, lock, env_step = time.perf_counter(), threading.Lock(), self.counters["env_steps"]
+
+        def written(index: int, program) -> None:  # in the compiling thread
+            with lock:
+                runfolder.append_csv(os.path.join(self.run, COMPILE_FILE), [{
+                    "env_step": env_step, "program": names[index], "lower_s": round(program.lower_s, 4),
+                    "compile_s": round(program.compile_s, 4), "ready_s": round(program.done_at - start, 4)}])
+        return written
+
+    def _lower_training_chunk(self) -> None:
+        """Where nothing was compiled ahead: lowers the training chunk right after the seed phase, before the
+        evaluation that may follow traces its program, and compiles it before the first chunk (:meth:`_schedule`,
+        a ``compile`` row). Traced before the evaluation, as in :meth:`_compile_ahead` and in a resumed run, the
+        chunk is the same program as there and hits the same persistent-cache entry (:func:`compile_ahead`'s
+        ``parallel=False`` says why); traced after the evaluation it would be compiled again."""
+        key = ("train_chunk", self.setup.chunk)
+        if self.counters["env_steps"] >= self.config.steps or isinstance(self._chunk_fns.get(key), AheadOfTime):
+            return  # no training chunk to run, or compiled ahead
+        with self._timed("compile"):
+            self._chunk_fns[key] = compile_ahead([(self.chunk_fn(*key), (self.ts,))], parallel=False,
+                                                 on_done=self._compile_rows(["train_chunk"]))[0]
 
     def _chunk_program(self, name: str, length: int):
         """``loop.<name>(ts, length)`` over seeds, jitted (compiled on the first call)."""
@@ -188,6 +206,7 @@ class _Run:
                     jax.block_until_ready(ts)
                 self._commit(ts, rows, metrics, first_step=None)
             n["seeded"] = True
+            self._lower_training_chunk()
             self._after_chunk()
         train = self.chunk_fn("train_chunk", self.setup.chunk)
         if isinstance(train, AheadOfTime) and not train.done():
