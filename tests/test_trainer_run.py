@@ -182,7 +182,8 @@ def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp
     # policy prior's return of each episode, the earlier rows keep theirs and an empty ``prior_return``; the
     # progress line and summary give the prior's mean beside MPPI's. (The reference, eval_prior off, logs no
     # such column: test_run_folder_holds_config_logs_checkpoints_plot_and_summary.)
-    result = _run(["train", "--resume", str(run), "--eval-prior"], cache)
+    result = _run(["train", "--resume", str(run), "--eval-prior", "--compile-ahead", "on"], cache)  # (the new
+    # evaluation program, the prior's play added, compiles beside the first chunks instead of before its first use)
     assert result.returncode == 0, result.stderr[-3000:]
     assert f"resuming {run} at {interrupted:,} env steps" in result.stderr
     assert (run / "train.csv").read_text() == (reference / "train.csv").read_text()
@@ -205,7 +206,7 @@ def test_killed_and_interrupted_run_resumes_to_the_same_eval_rows(reference, tmp
     assert config["config"]["eval_prior"] is True
     starts = config["provenance"]  # the start and both resumes
     assert [entry["command"].endswith(f"train --resume {run}") for entry in starts] == [False, True, False]
-    assert starts[2]["command"].endswith(f"train --resume {run} --eval-prior")
+    assert starts[2]["command"].endswith(f"train --resume {run} --eval-prior --compile-ahead on")
     assert starts[0]["time"] <= starts[1]["time"] <= starts[2]["time"]
     summary = (run / "summary.md").read_text()
     assert "3 starts (resumed)" in summary and f"Started by `{starts[0]['command']}`." in summary
@@ -242,8 +243,9 @@ def test_seeds_sharded_over_two_devices_give_the_unsharded_state(reference, tmp_
         for x, y in zip(floats(getattr(one, part)), floats(getattr(two, part)), strict=True):
             np.testing.assert_allclose(x, y, atol=2e-4, rtol=2e-4, err_msg=part)
     assert len(_rows(run / "eval.csv")) == 4
-    # resumed, sharded again: its checkpoint restored straight into the sharded programs' placement
-    result = _run(["train", "--resume", str(run), "--steps", str(CHECKPOINTS[1])], cache,
+    # resumed, sharded again: its checkpoint restored straight into the sharded programs' placement, which the
+    # programs compiled ahead (here also on 2 cores) accept as they are (else they would fall back and recompile)
+    result = _run(["train", "--resume", str(run), "--steps", str(CHECKPOINTS[1]), "--compile-ahead", "on"], cache,
                   XLA_FLAGS="--xla_force_host_platform_device_count=2")
     assert result.returncode == 0, result.stderr[-3000:]
     assert _steps(run) == CHECKPOINTS[:2] and "refused its arguments" not in result.stderr
