@@ -82,7 +82,7 @@ def _rows(path) -> list[dict]:
 def reference(tmp_path_factory, cache):
     """An uninterrupted run of CONFIG."""
     run = tmp_path_factory.mktemp("runs") / "reference"
-    result = _run([*CONFIG, "--out", str(run), "--compile-ahead", "on"], cache)  # resumed runs: auto
+    result = _run([*CONFIG, "--out", str(run), "--compile-ahead", "on"], cache)  # the other runs start with auto
     assert result.returncode == 0, result.stderr[-3000:]
     return run
 
