@@ -111,8 +111,9 @@ class _Run:
         jobs = [(name, self._chunk_program(name, length), (state,)) for name, length in names]
         jobs += [("init", self.init, (keys,))] if initialise else []
         jobs += [("finite", self.finite, (state.agent,)), ("evaluate", self.evaluate, (state.agent, keys))]
-        programs = dict(zip([name for name, _, _ in jobs], compile_ahead(
-            [job[1:] for job in jobs], on_done=self._compile_rows([name for name, _, _ in jobs])), strict=True))
+        labels = [name for name, _, _ in jobs]
+        programs = dict(zip(labels, compile_ahead([job[1:] for job in jobs], on_done=self._compile_rows(labels)),
+                            strict=True))
         for name in programs.keys() - {"train_chunk", "evaluate"}:  # those two go on compiling
             programs[name].ready()
         self.init, self.finite = programs.get("init", self.init), programs["finite"]
