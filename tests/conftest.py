@@ -71,6 +71,16 @@ gc.set_threshold(*TEST_GC_THRESHOLDS)
 # Measured 2026-11-26 (fresh clone, `make test`, before that merge): trainer_run ~470 s, env_fast ~130, analysis
 # ~120, lnn_training ~115, benchmark_in_scan ~75, env_solver ~72, tdmpc2 ~66, lnn_agents ~65, train_loop ~47,
 # cells ~47, env_parity ~34, env_corruptions ~27.
+# Measured 2026-12-02 (fresh clone, `pytest -n 2 --dist loadfile --durations=0`, 912 s): per-file sums 1,789 worker
+# seconds: trainer_run 586, env_fast 151, lnn_training 132, analysis 102, train_loop 99, env_api 95, lnn_agents 84,
+# env_solver 63, exploration 59, benchmark_in_scan 56, cells 50, tdmpc2 50, experiments_studies 44. The workers
+# ended 17 s apart (912 against 1,789 / 2), so the order is not what costs: the suite is CPU-bound, and a shorter
+# one needs less compiling. Most of it is MJX: a vmapped cartpole step_or_reset lowers to ~12K StableHLO ops
+# (1.26 M characters), traces in ~3 s (1.2 s unvmapped) and compiles in ~10 s at level 1 on 2 cores, and every
+# program that steps or resets an environment holds one (the trainer's seed chunk: 13K ops, 12.9 s alone; its
+# training chunk 21.5K, 23.0 s). XLA flags tried without gain: on that step (one core) parallel codegen split 1,
+# the concurrency-optimised scheduler off, copy insertion without region analysis (15.2 s without them, 15.8-16.4
+# with); on test_trainer_run's reference run LLVM's expensive passes off (104 s against 98 s).
 HEAVY_FILES = ("test_trainer_run.py", "test_env_fast.py", "test_analysis.py",
                "test_lnn_training.py", "test_benchmark_in_scan.py", "test_env_solver.py", "test_tdmpc2.py",
                "test_lnn_agents.py", "test_train_loop.py", "test_cells.py", "test_env_parity.py",
