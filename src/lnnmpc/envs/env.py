@@ -114,7 +114,11 @@ class Env:
         return self.spec.init(key, self.joints, self.mj_model.nq, self.mj_model.nv)
 
     def reset(self, key: jax.Array) -> EnvState:
-        """Starts an episode from dm_control's initial-state distribution."""
+        """Starts an episode from dm_control's initial-state distribution (one jitted program per environment and
+        argument shapes: :func:`_traced_once`)."""
+        return _jitted_reset(self, key)
+
+    def _reset(self, key: jax.Array) -> EnvState:
         k_init, k_obs = jax.random.split(key)
         qpos, qvel = self.initial_qpos_qvel(k_init)
         return self.reset_to(qpos, qvel, k_obs)
@@ -133,7 +137,11 @@ class Env:
         return self._start(data, key)
 
     def step(self, state: EnvState, action: jax.Array) -> EnvState:
-        """Applies ``action`` (action_size,) for ``action_repeat`` control steps; rewards are summed."""
+        """Applies ``action`` (action_size,) for ``action_repeat`` control steps; rewards are summed (one jitted
+        program per environment and argument shapes: :func:`_traced_once`)."""
+        return _jitted_step(self, state, action)
+
+    def _step(self, state: EnvState, action: jax.Array) -> EnvState:
         action = self._checked_action(action)
         data, rewards = self._control_steps(state.physics, action)
         return self._stepped(state, data, rewards)
@@ -141,7 +149,11 @@ class Env:
     def step_or_reset(self, state: EnvState, action: jax.Array, restart: jax.Array, key: jax.Array) -> EnvState:
         """``step(state, action)`` where ``restart`` (bool scalar) is False, ``reset(key)`` where it is True, with
         one forward-dynamics program for both (:func:`physics.control_step` with ``restart``): the training loop,
-        which may restart any environment at any step, compiles the physics once instead of a step and a reset."""
+        which may restart any environment at any step, compiles the physics once instead of a step and a reset.
+        One jitted program per environment and argument shapes (:func:`_traced_once`)."""
+        return _jitted_step_or_reset(self, state, action, restart, key)
+
+    def _step_or_reset(self, state: EnvState, action: jax.Array, restart: jax.Array, key: jax.Array) -> EnvState:
         action = self._checked_action(action)
         k_init, k_obs = jax.random.split(key)
         fresh = phys.fresh_data(self.mjx_model, *self.initial_qpos_qvel(k_init))
@@ -178,6 +190,23 @@ class Env:
             done=t * self.action_repeat >= self.spec.control_steps, dt=dt, t=t, key=key,
             clean_obs=clean, corruption=cstate,
         )
+
+
+def _traced_once(method):
+    """``method`` (an :class:`Env` method) jitted with the environment static (hashed by identity: ``eq=False``).
+
+    JAX then traces an environment's physics once per argument shapes and process, and reuses that trace, and its
+    ``vmap``-ed form, in every program that calls it: the trainer's seed and training chunks and its evaluation
+    hold the same step. Tracing MJX is the costly part of building those programs (a cartpole training chunk
+    traced and lowered in 9.9 s with the step inlined, 4.7 s after the seed chunk had traced the jitted step; a
+    second seed chunk 6.2 s -> 0.7 s; 2-core CPU). XLA inlines the nested call when it compiles, so the compiled
+    programs do the same work. Called outside a trace, the method runs compiled instead of op by op."""
+    return jax.jit(method, static_argnums=0)
+
+
+_jitted_reset = _traced_once(Env._reset)
+_jitted_step = _traced_once(Env._step)
+_jitted_step_or_reset = _traced_once(Env._step_or_reset)
 
 
 def make(task: str, *, physics: str | phys.PhysicsOptions = "fast", action_repeat: int = 2, **obs_options) -> Env:

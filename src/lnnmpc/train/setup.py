@@ -72,7 +72,9 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
     """Environments, agent and loop of a configuration (ValueErrors from them become ConfigErrors)."""
     try:
         env = envs.make(config.task, physics=config.physics, **config.obs)
-        eval_env = envs.make(config.task, physics=config.physics, **config.eval_obs)
+        # the same options, the same Env: its jitted physics is traced once for training and evaluation (env.py)
+        eval_env = (env if config.eval_obs == config.obs
+                    else envs.make(config.task, physics=config.physics, **config.eval_obs))
         if eval_env.observation_size != env.observation_size:
             raise ConfigError(f"eval_obs {config.eval_obs} changes the observation size "
                               f"({env.observation_size} -> {eval_env.observation_size}); remove_vel must match")
