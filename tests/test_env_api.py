@@ -138,3 +138,35 @@ def test_step_or_reset_is_a_step_or_a_reset(task, options):
             else:
                 np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-4, err_msg=f"env {i} {name}")
     assert int(got.t[0]) == 0 and int(got.t[1]) == int(state.t[1]) + 1 and float(got.reward[0]) == 0.0
+
+
+def test_physics_is_traced_once_per_env_and_shapes_for_every_program(monkeypatch):
+    """``step_or_reset`` is one jitted function per environment (env.py, ``_traced_once``): the programs that call it
+    with the same per-environment argument shapes (the trainer's seed and training chunks; here two vmapped
+    programs and an unbatched one, since vmap traced it at those shapes) reuse one trace, and another Env traces
+    anew. build_loop evaluates with the training Env itself when the evaluation's observation options are the
+    training's, so its evaluation reuses that trace too."""
+    from lnnmpc.envs.env import Env
+    from lnnmpc.train.config import TrainConfig
+    from lnnmpc.train.setup import build_loop
+
+    traces = []
+    checked = Env._checked_action
+    monkeypatch.setattr(Env, "_checked_action", lambda self, action: traces.append(self) or checked(self, action))
+    env = envs.make("cartpole-swingup", remove_vel=True)  # an Env of this test's own: no earlier trace of it
+    state = jax.eval_shape(jax.vmap(env.reset), jax.random.split(jax.random.key(0), 3))
+    args = (state, jnp.zeros((3, env.action_size)), jnp.zeros(3, bool), jax.random.split(jax.random.key(1), 3))
+    jax.jit(jax.vmap(env.step_or_reset)).trace(*args)
+    jax.jit(lambda *a: jax.vmap(env.step_or_reset)(*a).reward.sum()).trace(*args)  # another program, same step
+    assert traces == [env]
+    one = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape[1:], x.dtype), state)
+    jax.jit(env.step_or_reset).trace(one, args[1][0], args[2][0], args[3][0])  # unbatched: vmap traced these shapes
+    assert traces == [env]
+    other = envs.make("cartpole-swingup", remove_vel=True)  # equal options, another Env: its own trace
+    jax.jit(jax.vmap(other.step_or_reset)).trace(*args)
+    assert traces == [env, other]
+    base = dict(task="cartpole-swingup", agent="tdmpc2", small=True, steps=1000, seed_steps=500)
+    loop = build_loop(TrainConfig(**base))
+    assert loop.eval_env is loop.env
+    noisy = build_loop(TrainConfig(**base, eval_obs="noise=0.1"))
+    assert noisy.eval_env is not noisy.env and noisy.eval_env.corruption != noisy.env.corruption
