@@ -414,13 +414,59 @@ def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monke
 # milliseconds, compiling the acting program is their cost; conftest)
 _FILMING = {"MUJOCO_GL": "egl", "JAX_DISABLE_MOST_OPTIMIZATIONS": "1"}
 
+# Several CLI commands one after the other in one Python process, as separate launches would run them: each one's
+# exit status, stdout and stderr go to the JSON file named by the first argument (a list of {returncode, stdout,
+# stderr}); the second argument is the JSON list of the commands' argument lists.
+_LAUNCH_MANY = """
+import contextlib, gc, io, json, os, sys
+gc.set_threshold(*map(int, os.environ.get('LNNMPC_TEST_GC_THRESHOLDS', '700,10,10').split(',')))
+from lnnmpc.train.cli import main
+results = []
+for argv in json.loads(sys.argv[2]):
+    out, err, code = io.StringIO(), io.StringIO(), 0
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            main(argv)
+        except SystemExit as stop:
+            code = stop.code or 0
+    results.append({"returncode": code, "stdout": out.getvalue(), "stderr": err.getvalue()})
+with open(sys.argv[1], "w") as f:
+    json.dump(results, f)
+"""
 
-def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache, capsys):
+
+@pytest.fixture(scope="module")
+def videos(reference, tmp_path_factory, cache):
+    """The video commands of the tests below, launched together in one subprocess (offscreen OpenGL must be chosen
+    before MuJoCo loads, so not in this one): one Python start-up, import and policy environment for all three
+    (~12 s each on a 2-core CPU). Returns their folder and {name: CompletedProcess} in launch order: ``planner``
+    (one episode to folder/episode.mp4), ``prior`` (the prior acting, default file) and ``films`` (three episodes
+    into folder/films)."""
+    import json
+
+    folder = tmp_path_factory.mktemp("videos")
+    commands = {
+        "planner": ["video", str(reference), "--out", str(folder / "episode.mp4"), "--max-steps", "12", "--width",
+                    "96", "--height", "72"],
+        "prior": ["video", str(reference), "--actor", "prior", "--max-steps", "12", "--width", "96", "--height", "72"],
+        "films": ["video", str(reference), "--out", str(folder / "films"), "--episodes", "3", "--falls-below", "1e9",
+                  "--max-steps", "6", "--width", "64", "--height", "48"],
+    }
+    results = folder / "results.json"
+    launch = subprocess.run([sys.executable, "-c", _LAUNCH_MANY, str(results), json.dumps(list(commands.values()))],
+                            env=_env(cache, **_FILMING), capture_output=True, text=True, timeout=600)
+    assert launch.returncode == 0, launch.stderr[-3000:]
+    outcomes = json.loads(results.read_text())
+    return folder, {name: subprocess.CompletedProcess(argv, o["returncode"], o["stdout"], o["stderr"])
+                    for (name, argv), o in zip(commands.items(), outcomes, strict=True)}
+
+
+def test_video_renders_an_episode_with_egl_to_mp4(reference, videos, capsys):
     import imageio_ffmpeg
 
-    out = tmp_path / "episode.mp4"
-    result = _run(["video", str(reference), "--out", str(out), "--max-steps", "12", "--width", "96",
-                   "--height", "72"], cache, **_FILMING)
+    folder, launched = videos
+    out = folder / "episode.mp4"
+    result = launched["planner"]
     assert result.returncode == 0, result.stderr[-3000:]
     assert "12 frames at 50 fps" in result.stdout
     reader = imageio_ffmpeg.read_frames(str(out))
@@ -429,8 +475,7 @@ def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache, ca
     assert meta["size"] == (96, 72) and len(frames) == 12
     assert frames[-1][40:].std() > 5  # a rendered scene below the text band, not a blank image
     # the policy prior alone on the same episode: its own default file, the same first picture, other actions
-    prior = _run(["video", str(reference), "--actor", "prior", "--max-steps", "12", "--width", "96",
-                  "--height", "72"], cache, **_FILMING)
+    prior = launched["prior"]
     assert prior.returncode == 0, prior.stderr[-3000:]
     path = reference / "videos" / "2804-prior.mp4"
     assert f"12 frames at 50 fps -> {path}" in prior.stdout
@@ -443,16 +488,16 @@ def test_video_renders_an_episode_with_egl_to_mp4(reference, tmp_path, cache, ca
     assert "unknown actor 'mpc'; known: planner, prior" in _refused(capsys, "video", str(reference), "--actor", "mpc")
 
 
-def test_video_films_many_episodes_into_a_folder_and_keeps_the_falls(reference, tmp_path, cache):
+def test_video_films_many_episodes_into_a_folder_and_keeps_the_falls(videos):
     """``video --episodes 3``: three episodes at once, from three initial states, each streamed to its own MP4 of
     every agent step; ``keep_films`` then deletes the films of episodes that did not end below the threshold."""
     import imageio_ffmpeg
 
     from lnnmpc.train.video import keep_films
 
-    folder = tmp_path / "films"
-    result = _run(["video", str(reference), "--out", str(folder), "--episodes", "3", "--falls-below", "1e9",
-                   "--max-steps", "6", "--width", "64", "--height", "48"], cache, **_FILMING)
+    folder, launched = videos
+    folder = folder / "films"
+    result = launched["films"]
     assert result.returncode == 0, result.stderr[-3000:]
     assert "returns of 3 episodes: mean " in result.stdout and "filmed below 1e+09: 0 (" in result.stdout
     films = sorted(folder.iterdir())

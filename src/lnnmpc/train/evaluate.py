@@ -29,7 +29,6 @@ import sys
 import jax
 import numpy as np
 
-from lnnmpc import envs
 from lnnmpc.agents.actor import PriorActing, check_actor, with_actor
 from lnnmpc.agents.overrides import apply_planner_overrides
 from lnnmpc.train import runfolder
@@ -39,7 +38,7 @@ from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, par
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.policy_file import POLICY_FILE, policy_step, restore_policy
 from lnnmpc.train.report import StepProgress
-from lnnmpc.train.setup import build_loop, enable_compile_cache
+from lnnmpc.train.setup import build_loop, enable_compile_cache, shared_env
 from lnnmpc.train.sharding import SeedPlacement
 
 
@@ -239,7 +238,7 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     step = choose_checkpoint(run, checkpoint)
     try:
-        env = envs.make(config.task, physics=config.physics, **options)
+        env = shared_env(config.task, config.physics, options)
     except ValueError as error:
         raise ConfigError(str(error)) from None
     enable_compile_cache(config.compile_cache)

@@ -1,12 +1,14 @@
 """What a training run is set up from: :func:`validate` checks a configuration (or a run folder to resume)
 completely without compiling anything and returns the :class:`Setup` (environments, agent and loop built, the
 run folder checked, a checkpoint to resume from checked against the configuration and the state's layout);
-:func:`build_loop` builds environments, agent and loop; :func:`enable_compile_cache` turns on XLA's persistent
-compilation cache. :mod:`lnnmpc.train.trainer` runs what this sets up.
+:func:`build_loop` builds environments, agent and loop (the environments shared in the process: :func:`shared_env`);
+:func:`enable_compile_cache` turns on XLA's persistent compilation cache. :mod:`lnnmpc.train.trainer` runs what
+this sets up.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import os
 from typing import Any
@@ -68,13 +70,36 @@ class Setup:
                                     self.loop.env.episode_length)
 
 
-def build_loop(config: TrainConfig) -> TrainingLoop:
-    """Environments, agent and loop of a configuration (ValueErrors from them become ConfigErrors)."""
+_ENVS: collections.OrderedDict = collections.OrderedDict()
+
+
+def shared_env(task: str, physics: str, options: dict) -> envs.Env:
+    """``envs.make(task, physics=physics, **options)``, one Env per argument set in this process (the newest 16).
+
+    An Env's jitted physics is traced once per Env object (env.py, ``_traced_once``), so every loop, evaluation
+    and video of equal options in one process (``build_loop`` for a run and then for its evaluation, ``validate``
+    of several agents on one task) reuses one trace instead of tracing the physics anew (~2-3 s each on a CPU).
+    An Env is immutable; the key holds ``jax_enable_x64``, under which the model's arrays are built (float64)."""
     try:
-        env = envs.make(config.task, physics=config.physics, **config.obs)
+        key = (task, physics, tuple((k, type(v).__name__, v) for k, v in sorted(options.items())),
+               bool(jax.config.jax_enable_x64))
+        hash(key)
+    except TypeError:  # an option value that cannot be hashed: an Env of its own
+        return envs.make(task, physics=physics, **options)
+    if key not in _ENVS:
+        _ENVS[key] = envs.make(task, physics=physics, **options)
+        while len(_ENVS) > 16:
+            _ENVS.popitem(last=False)
+    _ENVS.move_to_end(key)
+    return _ENVS[key]
+
+
+def build_loop(config: TrainConfig) -> TrainingLoop:
+    """Environments (:func:`shared_env`), agent and loop of a configuration (ValueErrors become ConfigErrors)."""
+    try:
+        env = shared_env(config.task, config.physics, config.obs)
         # the same options, the same Env: its jitted physics is traced once for training and evaluation (env.py)
-        eval_env = (env if config.eval_obs == config.obs
-                    else envs.make(config.task, physics=config.physics, **config.eval_obs))
+        eval_env = env if config.eval_obs == config.obs else shared_env(config.task, config.physics, config.eval_obs)
         if eval_env.observation_size != env.observation_size:
             raise ConfigError(f"eval_obs {config.eval_obs} changes the observation size "
                               f"({env.observation_size} -> {eval_env.observation_size}); remove_vel must match")
