@@ -463,3 +463,24 @@ def test_a_committed_run_from_before_the_newest_agent_fields_reads_as_the_same_c
     assert agent_config_changes(saved["agent_config"], agent_config_json(new), new.inactive_fields()) == [
         ("learn_episode_starts", False, True)]
 
+
+
+def test_loops_of_equal_environment_options_share_one_env():
+    """build_loop takes its environments from setup.shared_env: one Env per task, physics, options and x64 mode in
+    a process, so the loops of several agents or evaluations on it reuse one trace of its physics (env.py); other
+    options, or float64 (whose model arrays are float64), give another Env."""
+    import jax
+
+    from lnnmpc.train.setup import build_loop, shared_env
+
+    base = dict(task="cartpole-swingup", small=True, steps=1000, seed_steps=500)
+    one = build_loop(TrainConfig(**base, agent="tdmpc2"))
+    assert build_loop(TrainConfig(**base, agent="cfc-zp-det")).env is one.env is one.eval_env
+    noisy = build_loop(TrainConfig(**base, agent="tdmpc2", eval_obs="noise=0.1"))
+    assert noisy.env is one.env and noisy.eval_env is not one.env
+    assert noisy.eval_env is shared_env("cartpole-swingup", "fast", {"obs_noise": 0.1})
+    assert shared_env("cartpole-swingup", "exact", {}) is not one.env
+    with jax.enable_x64(True):
+        wide = shared_env("cartpole-swingup", "fast", {})
+        assert wide is not one.env and wide.mjx_model.opt.timestep.dtype == np.float64
+    assert shared_env("cartpole-swingup", "fast", {}) is one.env

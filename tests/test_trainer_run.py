@@ -1,6 +1,7 @@
 """The trainer end to end at CI size, in subprocesses as a user runs it: run folder, the agent learns, kill/Ctrl-C
 and exact resume, seeds sharded over two (forced host) devices, NaN stop, evaluation on MJX and on dm_control, video.
-(Evaluations, which need no fresh process, run the CLI or ``lnnmpc.evaluate`` in this one.)
+(Evaluations, which need no fresh process, run the CLI or ``lnnmpc.evaluate`` in this one; the three video
+commands share one launch.)
 
 One reference run (2 seeds) is trained once per module; the other runs use the same configuration and hit
 XLA's persistent compilation cache (a folder per test session), so they mostly pay for tracing. The reference is
