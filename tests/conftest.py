@@ -83,6 +83,11 @@ gc.set_threshold(*TEST_GC_THRESHOLDS)
 # with); on test_trainer_run's reference run LLVM's expensive passes off (104 s against 98 s). Since 6285eb4 an Env's
 # physics is traced once per process and shared by the programs that call it (env.py, _traced_once): a cached launch
 # of that run 77 s -> 71 s (its training chunk lowered in 4.1 s instead of 10.1), results bit for bit unchanged.
+# build_loop, evaluate and video take their Envs from setup.shared_env (one per task, physics, options and x64 mode
+# in a process), so a file's loads of a run and validations of several agents on one task share that trace (a
+# walker validate's eval_shape 3.0 s -> 0.1 s), and test_trainer_run's three video commands share one launch. Fresh
+# clones, back to back (2026-12-02, `bash .ci/run`): 825.6 s of pytest, 868 s in all, 438 passed, against 925.7 s
+# and 969 s (437 passed) for the commit before (test_trainer_run alone: 375.6 s against 440.7 s).
 HEAVY_FILES = ("test_trainer_run.py", "test_env_fast.py", "test_analysis.py",
                "test_lnn_training.py", "test_benchmark_in_scan.py", "test_env_solver.py", "test_tdmpc2.py",
                "test_lnn_agents.py", "test_train_loop.py", "test_cells.py", "test_env_parity.py",
