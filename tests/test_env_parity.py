@@ -45,10 +45,20 @@ def _mjx_rollout_fn(task, extra):
 
 
 @pytest.fixture(autouse=True)
-def fresh_jit_caches():
+def fresh_jit_caches(monkeypatch):
     """JAX's caches of inner jitted functions (MJX's ``jit(tril)`` in RK4) do not tell x64 from x32 programs:
     one traced by an earlier float32 test in the same worker breaks the float64 lowering here (operand type
-    mismatch), and the reverse would leak float64 into later tests. Clear them on the way in and out."""
+    mismatch), and the reverse would leak float64 into later tests. Clear them on the way in and out.
+
+    That is not enough once test_trainer_run's evaluation with the policy prior has run in the worker (that test,
+    then this file, in one process: cartpole fails without the copies below, passes with them): RK4's Butcher
+    tableau, numpy arrays that MJX keeps at module level, still came into the float64 trace as float32 arguments of
+    ``jit(tril)``, so JAX keeps something of those very objects past ``clear_caches``. Fresh copies of them here,
+    equal in value, are objects it has not met."""
+    from mujoco.mjx._src import forward
+
+    monkeypatch.setattr(forward, "_RK4_A", np.array(forward._RK4_A, copy=True))
+    monkeypatch.setattr(forward, "_RK4_B", np.array(forward._RK4_B, copy=True))
     jax.clear_caches()
     yield
     jax.clear_caches()
