@@ -8,8 +8,8 @@ this sets up.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
+import functools
 import os
 from typing import Any
 
@@ -70,36 +70,32 @@ class Setup:
                                     self.loop.env.episode_length)
 
 
-_ENVS: collections.OrderedDict = collections.OrderedDict()
-
-
 def shared_env(task: str, physics: str, options: dict) -> envs.Env:
     """``envs.make(task, physics=physics, **options)``, one Env per argument set in this process (the newest 16).
 
     An Env's jitted physics is traced once per Env object (env.py, ``_traced_once``), so every loop, evaluation
-    and video of equal options in one process (``build_loop`` for a run and then for its evaluation, ``validate``
+    and video of equal options in one process (``build_loop`` for a run and for its evaluation, ``validate``
     of several agents on one task) reuses one trace instead of tracing the physics anew (~2-3 s each on a CPU).
     An Env is immutable; the key holds ``jax_enable_x64``, under which the model's arrays are built (float64)."""
+    key = tuple((name, type(value).__name__, value) for name, value in sorted(options.items()))
     try:
-        key = (task, physics, tuple((k, type(v).__name__, v) for k, v in sorted(options.items())),
-               bool(jax.config.jax_enable_x64))
         hash(key)
     except TypeError:  # an option value that cannot be hashed: an Env of its own
         return envs.make(task, physics=physics, **options)
-    if key not in _ENVS:
-        _ENVS[key] = envs.make(task, physics=physics, **options)
-        while len(_ENVS) > 16:
-            _ENVS.popitem(last=False)
-    _ENVS.move_to_end(key)
-    return _ENVS[key]
+    return _cached_env(task, physics, key, bool(jax.config.jax_enable_x64))
+
+
+@functools.lru_cache(maxsize=16)
+def _cached_env(task: str, physics: str, options: tuple, x64: bool) -> envs.Env:
+    """:func:`shared_env`'s Envs, keyed by its arguments (``options``: (name, type name, value), sorted)."""
+    return envs.make(task, physics=physics, **{name: value for name, _, value in options})
 
 
 def build_loop(config: TrainConfig) -> TrainingLoop:
     """Environments (:func:`shared_env`), agent and loop of a configuration (ValueErrors become ConfigErrors)."""
     try:
         env = shared_env(config.task, config.physics, config.obs)
-        # the same options, the same Env: its jitted physics is traced once for training and evaluation (env.py)
-        eval_env = env if config.eval_obs == config.obs else shared_env(config.task, config.physics, config.eval_obs)
+        eval_env = shared_env(config.task, config.physics, config.eval_obs)  # equal options: the training Env
         if eval_env.observation_size != env.observation_size:
             raise ConfigError(f"eval_obs {config.eval_obs} changes the observation size "
                               f"({env.observation_size} -> {eval_env.observation_size}); remove_vel must match")
