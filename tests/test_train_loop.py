@@ -149,14 +149,15 @@ def test_guarded_update_on_an_empty_buffer_keeps_the_agent(loop, init):
 
 def test_more_evaluation_episodes_with_the_same_key_extend_the_set(loop, seeded):
     """Episode i of an evaluation depends on the key and i alone: 3 episodes are 2 episodes' returns plus one,
-    and another key gives other episodes (episodes cut to 10 agent steps: the programs compile faster)."""
+    and another key gives other episodes. The episodes are _ToyEnv's (below: initial states drawn from the reset
+    key, no physics), so the two evaluation programs compile in seconds; the MJX environment's own use of its key
+    is test_env_api's and test_env_init's."""
     import dataclasses
 
     from lnn_helpers import quick_jit
 
-    short = dataclasses.replace(loop.env, spec=dataclasses.replace(loop.env.spec, control_steps=10))
     agent = jax.tree_util.tree_map(lambda x: x[0], seeded[0].agent)  # seed 0's agent (untrained: any policy will do)
-    evaluate = {n: quick_jit(TrainingLoop(loop.agent, loop.env, short,
+    evaluate = {n: quick_jit(TrainingLoop(loop.agent, loop.env, _ToyEnv(),
                                           dataclasses.replace(loop.config, eval_episodes=n)).evaluate) for n in (2, 3)}
     key = jax.random.key(11)
     two, three = (np.asarray(evaluate[n](agent, key)) for n in (2, 3))
