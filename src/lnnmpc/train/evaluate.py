@@ -20,6 +20,7 @@ act alone instead of MPPI (:mod:`lnnmpc.agents.actor`): what planning adds to th
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import os
@@ -161,30 +162,19 @@ def _evaluation_program(pair: SameProgram, episodes: int, seeds: int):
     return SeedPlacement(1).compile(loop.evaluate)
 
 
-class _SameConfig:
-    """A training configuration as a ``functools.lru_cache`` key: hashes and compares by its text (a frozen
-    dataclass of plain values and dicts: equal configurations, equal text), and carries the loop and seed keys that
-    compute its state's shapes."""
-
-    def __init__(self, config: TrainConfig, loop: TrainingLoop, keys: jax.Array):
-        self.text, self.loop, self.keys = repr(config), loop, keys
-
-    def __hash__(self) -> int:
-        return hash(self.text)
-
-    def __eq__(self, other) -> bool:
-        return isinstance(other, _SameConfig) and self.text == other.text
-
-
-@functools.lru_cache(maxsize=8)
-def _shapes_of(entry: _SameConfig):
-    """``eval_shape`` of the seeds' ``loop.init`` (traces environments, agent and replay: seconds)."""
-    return jax.eval_shape(jax.vmap(entry.loop.init), entry.keys)
+_SHAPES: collections.OrderedDict = collections.OrderedDict()
 
 
 def _state_shapes(config: TrainConfig, loop: TrainingLoop, keys: jax.Array):
-    """The training state's shapes and dtypes for ``config``, reused for equal configurations in this process."""
-    return _shapes_of(_SameConfig(config, loop, keys))
+    """The training state's shapes and dtypes for ``config`` (``eval_shape`` of the seeds' ``loop.init``, which
+    traces environments, agent and replay: seconds), reused for equal configurations in this process."""
+    key = repr(config)  # a frozen dataclass of plain values and dicts: equal configurations, equal text
+    if key not in _SHAPES:
+        _SHAPES[key] = jax.eval_shape(jax.vmap(loop.init), keys)
+        while len(_SHAPES) > 8:
+            _SHAPES.popitem(last=False)
+    _SHAPES.move_to_end(key)
+    return _SHAPES[key]
 
 
 def mjx_evaluator(agent, env, episodes: int, seeds: int):
