@@ -81,6 +81,12 @@ def test_overrides_are_converted_validated_and_listed():
         make_agent("tdmpc2", OBS, ACT, overrides={"planner.lr": 1.0})
     with pytest.raises(ValueError, match=r"unknown hyperparameter 'burn_in'"):
         make_agent("tdmpc2", OBS, ACT, overrides={"burn_in": 3})
+    decay = make_agent("cfc-op-det", OBS, ACT, overrides={"lr_decay_begin": "50000", "lr_decay_end": 1e5,
+                                                         "lr_final_scale": "0.1"}).config
+    assert (decay.lr_decay_begin, decay.lr_decay_end, decay.lr_final_scale) == (50_000, 100_000, 0.1)
+    assert not {"lr_decay_begin", "lr_decay_end"} & decay.inactive_fields()  # compared on resume
+    plain = make_agent("cfc-op-det", OBS, ACT).config
+    assert {"lr_decay_begin", "lr_decay_end", "free_bits"} <= plain.inactive_fields()
 
 
 def test_planner_overrides_change_the_planner_and_refuse_anything_else():

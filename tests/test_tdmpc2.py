@@ -12,7 +12,7 @@ from lnn_helpers import quick_jit
 
 from lnnmpc.agents import math as M
 from lnnmpc.agents.mppi import MPPIConfig
-from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config, clip_jointly
+from lnnmpc.agents.tdmpc2 import TDMPC2, TDMPC2Config, clip_jointly, learning_rate
 from lnnmpc.agents.tdmpc2_model import WorldModelConfig
 
 H, B, OBS, ACT = 3, 16, 5, 2
@@ -188,3 +188,46 @@ def test_flat_optimizer_gives_the_per_leaf_optimizers_updates(agent):
     assert moved == len(jax.tree_util.tree_leaves(start))  # every leaf trained, so the comparison is not vacuous
     with pytest.raises(ValueError, match="flat_optimizer=True needs joint_grad_clip=True"):
         dataclasses.replace(agent.config, flat_optimizer=True, joint_grad_clip=False)
+
+
+@pytest.mark.parametrize("flat", [True, False])
+def test_learning_rate_decay_steps_every_group_by_the_schedule(agent, flat):
+    """``lr_decay_*``: constant to update 1, linear to 0.1 x at update 3, constant after; Adam's steps on a
+    constant gradient are the rate itself, so each update's step is read off against the float64 schedule (the
+    encoder's at 0.3 x, the policy head's in the policy optimiser, the frozen groups unmoved)."""
+    config = dataclasses.replace(agent.config, flat_optimizer=flat, lr_decay_begin=1, lr_decay_end=3,
+                                 lr_final_scale=0.1)
+    decayed = TDMPC2(config)
+    expected = 3e-4 * np.interp(np.arange(6), [1, 3], [1.0, 0.1])  # [lr, lr, 0.55 lr, 0.1 lr, 0.1 lr, 0.1 lr]
+    np.testing.assert_allclose([float(learning_rate(config)(i)) for i in range(6)], expected, rtol=1e-6)
+    state = decayed.init(jax.random.key(8))
+    params, model_opt, policy_opt = state.params, state.model_opt, state.policy_opt
+    grads = jax.tree_util.tree_map(jnp.ones_like, params)
+    step = lambda u, group: float(jnp.abs(u[group]["Dense_0"]["kernel"]).max())
+    for rate in expected:
+        updates, model_opt = decayed.model_tx.update(grads, model_opt, params)
+        np.testing.assert_allclose(step(updates, "dynamics"), rate, rtol=1e-4)
+        np.testing.assert_allclose(step(updates, "encoder"), 0.3 * rate, rtol=1e-4)
+        assert step(updates, "policy_head") == 0.0
+        pi_updates, policy_opt = decayed.policy_tx.update(grads, policy_opt, params)
+        np.testing.assert_allclose(step(pi_updates, "policy_head"), rate, rtol=1e-3)  # Adam eps 1e-5
+        assert step(pi_updates, "dynamics") == 0.0
+    if flat:  # the update logs the rate it used (train.csv's lr); without a decay there is no such metric
+        _, metrics = quick_jit(decayed.update)(state.replace(updates=jnp.asarray(2)), _batch(2), jax.random.key(9))
+        np.testing.assert_allclose(float(metrics["lr"]), expected[2], rtol=1e-6)
+        assert callable(learning_rate(config)) and learning_rate(agent.config) == 3e-4
+
+
+def test_learning_rate_decay_validation_names_the_bad_value():
+    model = WorldModelConfig.from_size(OBS, ACT, 1)
+    with pytest.raises(ValueError, match=r"lr_final_scale must be in \(0, 1\] .*got 0"):
+        TDMPC2Config(model=model, lr_final_scale=0, lr_decay_end=10)
+    with pytest.raises(ValueError, match=r"lr_final_scale must be in \(0, 1\] .*got 1.5"):
+        TDMPC2Config(model=model, lr_final_scale=1.5)
+    with pytest.raises(ValueError, match="lr_decay_end=100 must exceed lr_decay_begin=100 when lr_final_scale=0.1"):
+        TDMPC2Config(model=model, lr_final_scale=0.1, lr_decay_begin=100, lr_decay_end=100)
+    with pytest.raises(ValueError, match=r"lr_decay_begin must be an integer >= 0 \(an update count\), got -1"):
+        TDMPC2Config(model=model, lr_decay_begin=-1)
+    constant = TDMPC2Config(model=model, lr_decay_begin=5)  # no decay: the updates are inactive, not compared
+    assert constant.inactive_fields() == {"lr_decay_begin", "lr_decay_end"}
+    assert TDMPC2Config(model=model, lr_final_scale=0.5, lr_decay_end=10).inactive_fields() == set()

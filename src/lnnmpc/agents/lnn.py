@@ -121,7 +121,7 @@ class LNNConfig(TDMPC2Config):
 
     def inactive_fields(self) -> set[str]:
         """Flattened config keys (``model.min_sigma``) that do not affect this variant's computation."""
-        unused = set()
+        unused = super().inactive_fields()
         if not self.model.stochastic:
             unused |= {"free_bits", "nll_beta", "model.min_sigma", "model.max_sigma"}
         elif self.model.objective == "zp":

@@ -60,6 +60,14 @@ class TDMPC2Config:
     entropy_coef: float = 1e-4
     vmin: float = -10.0
     vmax: float = 10.0
+    # Learning-rate decay (not TD-MPC2's, whose rate is constant; lr_final_scale = 1, the default, keeps it so):
+    # every rate (the encoder's, the rest's, the policy's) is constant up to update lr_decay_begin, falls linearly
+    # to lr_final_scale times itself at update lr_decay_end, and stays there. Updates are counted per seed: one
+    # per agent step, and action repeat 2 makes ~100K updates of a 200K-environment-step run (the seed phase's
+    # burst included). Meant to quiet a converged policy's late swings (late evaluations that collapse).
+    lr_decay_begin: int = 0
+    lr_decay_end: int = 0
+    lr_final_scale: float = 1.0
 
     def __post_init__(self):
         if not isinstance(self.horizon, int) or self.horizon < 1:
@@ -70,9 +78,36 @@ class TDMPC2Config:
         for name in ("lr", "encoder_lr_scale", "grad_clip_norm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        _check_lr_decay(self.lr_decay_begin, self.lr_decay_end, self.lr_final_scale)
         if self.flat_optimizer and not self.joint_grad_clip:
             raise ValueError("flat_optimizer=True needs joint_grad_clip=True (one flat vector has one global norm; "
                              "per-group clipping is the per-leaf optimiser's)")
+
+    def inactive_fields(self) -> set[str]:
+        """Flattened config keys that do not affect the computation (the decay's updates without a decay)."""
+        return {"lr_decay_begin", "lr_decay_end"} if self.lr_final_scale == 1.0 else set()
+
+
+def _check_lr_decay(begin, end, final_scale) -> None:
+    for name, value in (("lr_decay_begin", begin), ("lr_decay_end", end)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{name} must be an integer >= 0 (an update count), got {value!r}")
+    if isinstance(final_scale, bool) or not isinstance(final_scale, int | float) or not 0.0 < final_scale <= 1.0:
+        raise ValueError(f"lr_final_scale must be in (0, 1] (1: a constant learning rate), got {final_scale!r}")
+    if final_scale < 1.0 and end <= begin:
+        raise ValueError(f"lr_decay_end={end} must exceed lr_decay_begin={begin} when lr_final_scale={final_scale} "
+                         "< 1 (the decay runs from update lr_decay_begin to update lr_decay_end)")
+
+
+def learning_rate(config: TDMPC2Config, scale: float = 1.0) -> float | optax.Schedule:
+    """``config.lr · scale``, or without a decay configured (``lr_final_scale`` 1) that float; otherwise a schedule
+    of the optimiser's update count: constant to ``lr_decay_begin``, linear to ``lr_final_scale`` times the rate at
+    ``lr_decay_end``, constant after."""
+    if config.lr_final_scale == 1.0:
+        return config.lr * scale
+    return optax.linear_schedule(config.lr * scale, config.lr * scale * config.lr_final_scale,
+                                 transition_steps=config.lr_decay_end - config.lr_decay_begin,
+                                 transition_begin=config.lr_decay_begin)
 
 
 @struct.dataclass
@@ -116,17 +151,18 @@ def make_optimizers(config: TDMPC2Config) -> tuple[optax.GradientTransformation,
         keep, zero = optax.identity(), optax.set_to_zero()
         model_tx = optax.chain(
             optax.multi_transform({"encoder": keep, "rest": keep, "frozen": zero}, model_groups),
-            optax.flatten(optax.chain(clip, optax.adam(config.lr))),
+            optax.flatten(optax.chain(clip, optax.adam(learning_rate(config)))),
             optax.multi_transform({"encoder": optax.scale(config.encoder_lr_scale), "rest": keep, "frozen": zero},
                                   model_groups))
         policy_tx = optax.chain(optax.multi_transform({"policy": keep, "frozen": zero}, policy_groups),
-                                optax.flatten(optax.chain(clip, optax.adam(config.lr, eps=1e-5))))
+                                optax.flatten(optax.chain(clip, optax.adam(learning_rate(config), eps=1e-5))))
         return model_tx, policy_tx
     model_tx = optax.multi_transform(
-        {"encoder": optax.chain(clip, optax.adam(config.lr * config.encoder_lr_scale)),
-         "rest": optax.chain(clip, optax.adam(config.lr)), "frozen": optax.set_to_zero()}, model_groups)
+        {"encoder": optax.chain(clip, optax.adam(learning_rate(config, config.encoder_lr_scale))),
+         "rest": optax.chain(clip, optax.adam(learning_rate(config))), "frozen": optax.set_to_zero()}, model_groups)
     policy_tx = optax.multi_transform(
-        {"policy": optax.chain(clip, optax.adam(config.lr, eps=1e-5)), "frozen": optax.set_to_zero()}, policy_groups)
+        {"policy": optax.chain(clip, optax.adam(learning_rate(config), eps=1e-5)), "frozen": optax.set_to_zero()},
+        policy_groups)
     return model_tx, policy_tx
 
 
@@ -232,6 +268,9 @@ class TDMPC2:
             target_q = M.polyak(state.target_q, params["q_heads"], self.config.tau)
         new_state = AgentState(params=params, target_q=target_q, model_opt=model_opt, policy_opt=policy_opt,
                                scale=scale, updates=state.updates + 1)
+        rate = learning_rate(self.config)
+        if callable(rate):  # a decaying rate is logged (train.csv's lr): the one this update used
+            metrics["lr"] = rate(state.updates)
         return new_state, {**metrics, **pi_metrics}
 
     # ------------------------------------------------------------ acting protocol (agents/registry.py)
