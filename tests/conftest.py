@@ -45,10 +45,6 @@ if TEST_XLA_FLAGS not in os.environ.get("XLA_FLAGS", ""):
 # solver) are marked full_optimisation (_test_compile_effort below); their cartpole cases agree bit for bit and to
 # 1e-5 at level 0 too and compile there (22 s against 36 s, 18 s against 24 s). Every other file turns the flag on
 # for its duration (_compile_effort below). Trainer subprocesses keep level 1.
-# Measured so (this checkout, this 2-core CPU, 2026-12-02): 720.0 s of pytest, 435 passed (the runs of that day
-# vary by ~15% with the machine's other load: before the per-test marks, the in-process dm_control evaluations
-# and the video launches at level 0, 745.7 s and 822.3 s; with all but the last, 677.6 s and 791.8 s; 1,048.3 s
-# on a fresh clone earlier that day).
 OPTIMISED_FILES = ("test_trainer_run.py",)
 
 # Tracing is the suite's other big cost (JAX builds millions of short-lived objects over a heap of ~1 GB of
@@ -68,31 +64,15 @@ gc.set_threshold(*TEST_GC_THRESHOLDS)
 # listed keep pytest's order after these.
 # The learning check lives in test_trainer_run.py (its reference run is the learning run; a separate in-process
 # learning file cost ~110-200 s of compiling the same kinds of programs again).
-# Measured 2026-11-26 (fresh clone, `make test`, before that merge): trainer_run ~470 s, env_fast ~130, analysis
-# ~120, lnn_training ~115, benchmark_in_scan ~75, env_solver ~72, tdmpc2 ~66, lnn_agents ~65, train_loop ~47,
-# cells ~47, env_parity ~34, env_corruptions ~27.
-# Measured 2026-12-02 (fresh clone, `pytest -n 2 --dist loadfile --durations=0`, 912 s): per-file sums 1,789 worker
-# seconds: trainer_run 586, env_fast 151, lnn_training 132, analysis 102, train_loop 99, env_api 95, lnn_agents 84,
-# env_solver 63, exploration 59, benchmark_in_scan 56, cells 50, tdmpc2 50, experiments_studies 44. The workers
-# ended 17 s apart (912 against 1,789 / 2), so the order is not what costs: the suite is CPU-bound, and a shorter
-# one needs less compiling. Most of it is MJX: a vmapped cartpole step_or_reset lowers to ~12K StableHLO ops
-# (1.26 M characters), traces in ~3 s (1.2 s unvmapped) and compiles in ~10 s at level 1 on 2 cores, and every
-# program that steps or resets an environment holds one (the trainer's seed chunk: 13K ops, 12.9 s alone; its
-# training chunk 21.5K, 23.0 s). XLA flags tried without gain: on that step (one core) parallel codegen split 1,
-# the concurrency-optimised scheduler off, copy insertion without region analysis (15.2 s without them, 15.8-16.4
-# with); on test_trainer_run's reference run LLVM's expensive passes off (104 s against 98 s). Since 6285eb4 an Env's
-# physics is traced once per process and shared by the programs that call it (env.py, _traced_once): a cached launch
-# of that run 77 s -> 71 s (its training chunk lowered in 4.1 s instead of 10.1), results bit for bit unchanged.
-# build_loop, evaluate and video take their Envs from setup.shared_env (one per task, physics, options and x64 mode
-# in a process), so a file's loads of a run and validations of several agents on one task share that trace (a
-# walker validate's eval_shape 3.0 s -> 0.1 s), and test_trainer_run's three video commands share one launch. Fresh
-# clones, back to back (2026-12-02, `bash .ci/run`): 825.6 s of pytest, 868 s in all, 438 passed, against 925.7 s
-# and 969 s (437 passed) for the commit before (test_trainer_run alone: 375.6 s against 440.7 s).
-# Re-measured 2026-12-03 (worktree of ec09d8b, same command, 668 s): trainer_run 397, env_fast 124, env_api 85,
-# lnn_training 81, train_loop 76 (~45 after its evaluation-key test moved to _ToyEnv), lnn_agents 70, analysis 51,
-# env_solver 51, exploration 45, cells 44, experiments_studies 40, benchmark_in_scan 36, tdmpc2 34, env_parity 24,
-# actor 23, env_corruptions 22, tdmpc2_model 20, trainer_config 17; the rest under 15 s each. env_api, exploration
-# and experiments_studies were not listed, so they started after every listed file.
+# The order comes from the per-file sums of worker seconds in `pytest -n 2 --dist loadfile --durations=0` on a
+# fresh clone (re-measure with it when files grow; every file over ~20 s is listed). The workers end within
+# seconds of each other, so the order is not what costs: the suite is CPU-bound and compile-bound, mostly MJX (a
+# vmapped cartpole step_or_reset lowers to ~12K StableHLO ops and compiles in ~10 s at level 1 on 2 cores, and
+# every program that steps or resets an environment holds one). XLA flags tried without gain on that step: parallel
+# codegen split 1, the concurrency-optimised scheduler off, copy insertion without region analysis; on
+# test_trainer_run's reference run, LLVM's expensive passes off. An Env's physics is traced once per process
+# (env.py, _traced_once) and build_loop, evaluate and video take their Envs from setup.shared_env, so a file's
+# programs on one task share that trace. Dated suite and per-file timings are in README.md's Development section.
 HEAVY_FILES = ("test_trainer_run.py", "test_env_fast.py", "test_env_api.py", "test_lnn_training.py",
                "test_lnn_agents.py", "test_analysis.py", "test_env_solver.py", "test_train_loop.py",
                "test_exploration.py", "test_cells.py", "test_experiments_studies.py", "test_benchmark_in_scan.py",
