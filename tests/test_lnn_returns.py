@@ -67,19 +67,3 @@ def test_static_lambda_zero_skips_the_scan_and_equals_the_traced_path(data):
     assert "scan" not in str(jax.make_jaxpr(lambda r, v: lambda_returns(r, v, 0.99, 0))(rewards, values))
     assert "scan" in str(jax.make_jaxpr(lambda r, v: lambda_returns(r, v, 0.99, 0.5))(rewards, values))
 
-
-def test_value_vs_return_script_discounts_each_episode_to_its_end():
-    """experiments/scripts/value_vs_return.py's G_t = sum_k gamma^k r_{t+k} (to the episode's end), against the
-    double sum in float64, episode by episode."""
-    import importlib.util
-    import os
-
-    path = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "value_vs_return.py")
-    spec = importlib.util.spec_from_file_location("value_vs_return", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
-    reward = np.random.default_rng(3).uniform(0, 2, size=(3, 17)).astype(np.float32)
-    gamma = 0.9
-    expected = np.array([[sum(gamma ** k * float(reward[e, t + k]) for k in range(17 - t)) for t in range(17)]
-                         for e in range(3)])
-    np.testing.assert_allclose(script.discounted_returns_to_go(reward, gamma), expected, rtol=1e-12)

@@ -20,37 +20,28 @@ import sys
 import numpy as np
 
 
-def discounted_returns_to_go(reward: np.ndarray, gamma: float) -> np.ndarray:
-    """G (E, T) with G_t = sum_{k >= 0} gamma^k r_{t+k} to the episode's end, from rewards (E, T) (float64)."""
-    reward = np.asarray(reward, np.float64)
-    out = np.zeros_like(reward)
-    running = np.zeros(reward.shape[0])
-    for t in range(reward.shape[1] - 1, -1, -1):
-        running = reward[:, t] + gamma * running
-        out[:, t] = running
-    return out
-
-
 def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> list[dict]:
     import jax
     import jax.numpy as jnp
 
+    from lnnmpc.agents.returns import lambda_returns
     from lnnmpc.analysis.rollout import rollout
     from lnnmpc.train.evaluate import load_policy
 
     policy = load_policy(run, checkpoint)
     agent = policy.loop.agent
     heads = jnp.arange(agent.config.model.num_q)
+    q_of = jax.vmap(lambda params, z, a: agent._q_values(params, z, a, heads).mean(axis=0), in_axes=(None, 0, 0))
     rows = []
     for seed in range(policy.config.seeds):
         state = policy.seed_state(seed)
         records = rollout(agent, state, policy.loop.eval_env, jax.random.key(0), episodes)
         z, action = records["latent"], records["action"]
-        q_of = jax.vmap(lambda params, zz, aa: agent._q_values(params, zz, aa, heads).mean(axis=0),
-                        in_axes=(None, 0, 0))
         q = q_of(state.params, z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1]))
         q = np.asarray(q).reshape(z.shape[:2])
-        g = discounted_returns_to_go(records["reward"], agent.config.gamma)
+        # G_t to the episode's end: TD(1) targets with no value after the last step
+        reward = jnp.asarray(records["reward"]).T  # time-major (T, E)
+        g = np.asarray(lambda_returns(reward, jnp.zeros_like(reward), agent.config.gamma, 1.0)).T
         rows.append({"env_step": policy.checkpoint, "seed": seed, "episodes": episodes, "steps": steps,
                      "return": float(records["reward"].sum(axis=1).mean()),
                      "q_mean": float(q[:, :steps].mean()), "g_mean": float(g[:, :steps].mean()),
