@@ -7,7 +7,9 @@ each seed of a run and compares, over the first ``--steps`` agent steps of each 
 of the action taken, Q(z_t, a_t), with the discounted return the episode actually paid from t on,
 G_t = sum_k gamma^k r_{t+k} (to the episode's end: with 500-step episodes and gamma 0.99, G_t for t <= 200 misses
 less than 5% of the tail). A seed whose Q stays far above its G is planning on values its episodes never collect
-(an over-estimate the planner acts on); a seed whose Q tracks its G has a calibrated critic. Prints one row per
+(an over-estimate the planner acts on); a seed whose Q tracks its G has a calibrated critic. The reward head's
+prediction for the same (z_t, a_t), against the reward paid, over the same steps, tells whether the world model
+itself expects rewards the episode does not pay (a seed balancing outside the sparse region). Prints one row per
 seed and writes it to ``<run>/analysis/<step>/value_vs_return.csv`` (or ``--out``).
 """
 
@@ -24,6 +26,7 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     import jax
     import jax.numpy as jnp
 
+    from lnnmpc.agents.math import two_hot_inv
     from lnnmpc.agents.returns import lambda_returns
     from lnnmpc.analysis.rollout import rollout
     from lnnmpc.train.evaluate import load_policy
@@ -32,6 +35,9 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     agent = policy.loop.agent
     heads = jnp.arange(agent.config.model.num_q)
     q_of = jax.vmap(lambda params, z, a: agent._q_values(params, z, a, heads).mean(axis=0), in_axes=(None, 0, 0))
+    cfg = agent.config
+    r_of = jax.vmap(lambda params, z, a: two_hot_inv(agent._apply(params, z, a, method="reward"), cfg.model.num_bins,
+                                                     cfg.vmin, cfg.vmax), in_axes=(None, 0, 0))
     rows = []
     for seed in range(policy.config.seeds):
         state = policy.seed_state(seed)
@@ -39,6 +45,8 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
         z, action = records["latent"], records["action"]
         q = q_of(state.params, z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1]))
         q = np.asarray(q).reshape(z.shape[:2])
+        r_hat = r_of(state.params, z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1]))
+        r_hat = np.asarray(r_hat).reshape(z.shape[:2])
         # G_t to the episode's end: TD(1) targets with no value after the last step
         reward = jnp.asarray(records["reward"]).T  # time-major (T, E)
         g = np.asarray(lambda_returns(reward, jnp.zeros_like(reward), agent.config.gamma, 1.0)).T
@@ -46,7 +54,9 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
                      "return": float(records["reward"].sum(axis=1).mean()),
                      "q_mean": float(q[:, :steps].mean()), "g_mean": float(g[:, :steps].mean()),
                      "q_minus_g": float((q[:, :steps] - g[:, :steps]).mean()),
-                     "q_start": float(q[:, 0].mean()), "g_start": float(g[:, 0].mean())})
+                     "q_start": float(q[:, 0].mean()), "g_start": float(g[:, 0].mean()),
+                     "reward_hat_mean": float(r_hat[:, :steps].mean()),
+                     "reward_mean": float(records["reward"][:, :steps].mean())})
     return rows
 
 
@@ -68,11 +78,11 @@ def main(argv: list[str] | None = None) -> int:
     os.makedirs(out, exist_ok=True)
     fields = list(rows[0])
     runfolder.write_csv(os.path.join(out, "value_vs_return.csv"), fields, rows)
-    print("| seed | return | Q(z_t, a_t) | G_t | Q - G | Q at t = 0 | G at t = 0 |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    print("| seed | return | Q(z_t, a_t) | G_t | Q - G | Q at t = 0 | G at t = 0 | predicted reward | reward |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['seed']} | {r['return']:.1f} | {r['q_mean']:.1f} | {r['g_mean']:.1f} | {r['q_minus_g']:+.1f} | "
-              f"{r['q_start']:.1f} | {r['g_start']:.1f} |")
+              f"{r['q_start']:.1f} | {r['g_start']:.1f} | {r['reward_hat_mean']:.3f} | {r['reward_mean']:.3f} |")
     return 0
 
 
