@@ -93,13 +93,14 @@ def test_planner_overrides_change_the_planner_and_refuse_anything_else():
     """What ``eval --planner`` may change: only planner fields (the trained parameters do not depend on them)."""
     config = make_agent("cfc-op-det", OBS, ACT).config
     assert planner_keys(config) == ["explore_min_std", "iterations", "max_std", "min_std", "num_elites",
-                                    "num_policy_trajectories", "num_samples", "plan_horizon", "temperature", "unroll"]
+                                    "num_policy_trajectories", "num_samples", "plan_horizon", "temperature",
+                                    "terminal_q", "unroll"]
     changed = apply_planner_overrides(config, {"iterations": "12", "plan_horizon": 5, "planner.gamma": 0.9})
     assert (changed.planner.iterations, changed.planner.horizon, changed.planner.gamma) == (12, 5, 0.9)
     assert changed.gamma == 0.99 and changed.model == config.model and changed.horizon == config.horizon
     assert apply_planner_overrides(config, {}) is config
     with pytest.raises(ValueError, match=r"'gamma', 'num_q' is not a planner setting; an evaluation may change "
-                                         r"only: explore_min_std, .*temperature, unroll \(or planner.FIELD\)"):
+                                         r"only: explore_min_std, .*terminal_q, unroll \(or planner.FIELD\)"):
         apply_planner_overrides(config, {"num_q": 5, "gamma": 0.9, "iterations": 2})
     with pytest.raises(ValueError, match=r"planner: .*num_elites.* \(set by num_elites=1000\)"):
         apply_planner_overrides(config, {"num_elites": 1000})
@@ -365,6 +366,32 @@ def test_op_planning_step_is_the_encoder_on_the_prediction(name):
     if sigma is not None:  # the stochastic transition samples: another key gives another next latent
         other = model.dynamics({"z": z, "key": jax.random.key_data(jax.random.key(7))}, a)
         assert float(jnp.abs(other["z"] - stepped["z"]).max()) > 1e-4
+
+
+@pytest.mark.parametrize("name", ["cfc-zp-det", "tdmpc2"])
+def test_planning_value_is_the_mean_or_the_min_of_the_two_heads_drawn(name):
+    """``terminal_q`` (``--set terminal_q=min``, ``eval --planner terminal_q=min``): the planner's terminal value is
+    the mean of the two Q heads drawn with the value's key (TD-MPC2) or their minimum; the heads are made to
+    disagree (their parameters perturbed apart) so that mean and min differ."""
+    agent = tiny(name) if name != "tdmpc2" else make_agent("tdmpc2", OBS, ACT, small=True)
+    state = quick_jit(agent.init)(jax.random.key(4))
+    noise = jax.tree.map(lambda x: 0.3 * jax.random.normal(jax.random.key(8), x.shape, x.dtype),
+                         state.params["q_heads"])
+    params = {**state.params, "q_heads": jax.tree.map(jnp.add, state.params["q_heads"], noise)}
+    z = 0.5 * jnp.tanh(jax.random.normal(jax.random.key(5), (agent.config.model.latent_dim if name == "tdmpc2"
+                                                            else agent.config.model.hidden_size,)))
+    a, key = jnp.array([0.3, -0.7]), jax.random.key(6)
+    latent = z if name == "tdmpc2" else {"z": z, "key": jax.random.key_data(jax.random.key(7))}
+    heads = np.asarray(agent._q_values(params, z, a, agent._two_heads(key)))
+    assert heads.shape == (2,) and abs(heads[0] - heads[1]) > 1e-3
+    values = {}
+    for how in ("mean", "min"):
+        config = dataclasses.replace(agent.config, planner=dataclasses.replace(agent.config.planner, terminal_q=how))
+        values[how] = float(type(agent)(config).planning_model(params).value(latent, a, key))
+    np.testing.assert_allclose(values["mean"], heads.mean(), rtol=1e-6)
+    np.testing.assert_allclose(values["min"], heads.min(), rtol=1e-6)
+    with pytest.raises(ValueError, match=r"terminal_q='max' is invalid; expected one of mean, min"):
+        apply_planner_overrides(agent.config, {"terminal_q": "max"})
 
 
 def test_symlog_input_transform_squashes_what_the_cell_reads(zp_agent):

@@ -200,6 +200,7 @@ def test_horizon_one():
         ({"num_policy_trajectories": True}, "num_policy_trajectories=True"),
         ({"explore_min_std": -0.1}, r"explore_min_std=-0.1 is invalid; expected a finite number >= 0"),
         ({"explore_min_std": float("inf")}, "explore_min_std=inf"),
+        ({"terminal_q": "median"}, r"terminal_q='median' is invalid; expected one of mean, min"),
     ],
 )
 def test_config_validation(kwargs, match):

@@ -9,7 +9,9 @@ G_t = sum_k gamma^k r_{t+k} (to the episode's end: with 500-step episodes and ga
 less than 5% of the tail). A seed whose Q stays far above its G is planning on values its episodes never collect
 (an over-estimate the planner acts on); a seed whose Q tracks its G has a calibrated critic. The reward head's
 prediction for the same (z_t, a_t), against the reward paid, over the same steps, tells whether the world model
-itself expects rewards the episode does not pay (a seed balancing outside the sparse region). Prints one row per
+itself expects rewards the episode does not pay (a seed balancing outside the sparse region); the Q heads' spread
+(largest minus smallest head, mean over the steps) tells whether the heads disagree where the critic is wrong, which
+a pessimistic planning value (the minimum of the heads) would penalise. Prints one row per
 seed and writes it to ``<run>/analysis/<step>/value_vs_return.csv`` (or ``--out``).
 """
 
@@ -34,7 +36,7 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     policy = load_policy(run, checkpoint)
     agent = policy.loop.agent
     heads = jnp.arange(agent.config.model.num_q)
-    q_of = jax.vmap(lambda params, z, a: agent._q_values(params, z, a, heads).mean(axis=0), in_axes=(None, 0, 0))
+    q_of = jax.vmap(lambda params, z, a: agent._q_values(params, z, a, heads), in_axes=(None, 0, 0))  # (N, heads)
     cfg = agent.config
     r_of = jax.vmap(lambda params, z, a: two_hot_inv(agent._apply(params, z, a, method="reward"), cfg.model.num_bins,
                                                      cfg.vmin, cfg.vmax), in_axes=(None, 0, 0))
@@ -44,7 +46,8 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
         records = rollout(agent, state, policy.loop.eval_env, jax.random.key(0), episodes)
         z, action = records["latent"], records["action"]
         q = q_of(state.params, z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1]))
-        q = np.asarray(q).reshape(z.shape[:2])
+        q_heads = np.asarray(q).reshape(*z.shape[:2], -1)  # (E, T, heads)
+        q, spread = q_heads.mean(axis=-1), q_heads.max(axis=-1) - q_heads.min(axis=-1)
         r_hat = r_of(state.params, z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1]))
         r_hat = np.asarray(r_hat).reshape(z.shape[:2])
         # G_t to the episode's end: TD(1) targets with no value after the last step
@@ -55,6 +58,7 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
                      "q_mean": float(q[:, :steps].mean()), "g_mean": float(g[:, :steps].mean()),
                      "q_minus_g": float((q[:, :steps] - g[:, :steps]).mean()),
                      "q_start": float(q[:, 0].mean()), "g_start": float(g[:, 0].mean()),
+                     "q_head_spread": float(spread[:, :steps].mean()),
                      "reward_hat_mean": float(r_hat[:, :steps].mean()),
                      "reward_mean": float(records["reward"][:, :steps].mean())})
     return rows
@@ -78,11 +82,13 @@ def main(argv: list[str] | None = None) -> int:
     os.makedirs(out, exist_ok=True)
     fields = list(rows[0])
     runfolder.write_csv(os.path.join(out, "value_vs_return.csv"), fields, rows)
-    print("| seed | return | Q(z_t, a_t) | G_t | Q - G | Q at t = 0 | G at t = 0 | predicted reward | reward |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| seed | return | Q(z_t, a_t) | G_t | Q - G | Q at t = 0 | G at t = 0 | heads' spread | predicted reward | "
+          "reward |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(f"| {r['seed']} | {r['return']:.1f} | {r['q_mean']:.1f} | {r['g_mean']:.1f} | {r['q_minus_g']:+.1f} | "
-              f"{r['q_start']:.1f} | {r['g_start']:.1f} | {r['reward_hat_mean']:.3f} | {r['reward_mean']:.3f} |")
+              f"{r['q_start']:.1f} | {r['g_start']:.1f} | {r['q_head_spread']:.1f} | {r['reward_hat_mean']:.3f} | "
+              f"{r['reward_mean']:.3f} |")
     return 0
 
 

@@ -20,6 +20,8 @@ Semantics (TD-MPC2 ``plan`` / ``_estimate_value``):
   settle on a behaviour of its own with a small std (on cartpole-swingup-sparse, barely swinging the pole: 0.6
   turns per episode against 2.8 for a planner ranking at random; ``experiments/scripts/stuck_seed_exploration.py``),
   and its exploration shrinks with it.
+* The terminal value's two Q heads are averaged (TD-MPC2) or, with ``terminal_q="min"`` (not TD-MPC2's), their
+  minimum is taken (:func:`combine_terminal_q`; the agents apply it in their ``planning_model``).
 """
 
 from __future__ import annotations
@@ -56,6 +58,17 @@ def _check_positive(name: str, value: Any) -> None:
         raise ValueError(f"{name}={value!r} is invalid; expected a finite number > 0")
 
 
+TERMINAL_Q = ("mean", "min")
+
+
+def combine_terminal_q(q_heads: jax.Array, terminal_q: str) -> jax.Array:
+    """The terminal value from the drawn Q heads' values (heads, ...) -> (...): their mean (TD-MPC2) or, with
+    ``terminal_q="min"``, their minimum, which values a state by its most pessimistic head, so that imagined
+    trajectories into states where the heads disagree (rare in the replay, where a critic's over-estimate lives)
+    score lower."""
+    return jnp.min(q_heads, axis=0) if terminal_q == "min" else jnp.mean(q_heads, axis=0)
+
+
 @dataclasses.dataclass(frozen=True)
 class MPPIConfig:
     """MPPI hyperparameters (TD-MPC2 defaults)."""
@@ -70,6 +83,7 @@ class MPPIConfig:
     max_std: float = 2.0
     gamma: float = 0.99
     explore_min_std: float = 0.0  # floor of the exploration noise's scale in exploring calls (0: std[0] alone)
+    terminal_q: str = "mean"  # how the agent combines the 2 Q heads of the terminal value: "mean" (TD-MPC2) or "min"
     unroll: bool = False  # unroll the scans: no faster on an H100 (act 2.97 vs 2.85 ms rolled), slower to compile
 
     def __post_init__(self) -> None:
@@ -92,6 +106,8 @@ class MPPIConfig:
         _check_positive("gamma", self.gamma)
         if self.gamma > 1.0:
             raise ValueError(f"gamma={self.gamma!r} is invalid; expected a number in (0, 1]")
+        if self.terminal_q not in TERMINAL_Q:
+            raise ValueError(f"terminal_q={self.terminal_q!r} is invalid; expected one of {', '.join(TERMINAL_Q)}")
         floor = self.explore_min_std
         if isinstance(floor, bool) or not isinstance(floor, int | float) or not 0.0 <= floor < float("inf"):
             raise ValueError(f"explore_min_std={floor!r} is invalid; expected a finite number >= 0 (0: the "

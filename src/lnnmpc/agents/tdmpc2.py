@@ -29,7 +29,7 @@ from flax import struct
 from flax.traverse_util import path_aware_map
 
 from lnnmpc.agents import math as M
-from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
+from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, combine_terminal_q, mppi_plan
 from lnnmpc.agents.tdmpc2_model import WorldModel, WorldModelConfig, q_logits_of_heads
 
 
@@ -316,18 +316,24 @@ class TDMPC2:
         return sample.action if explore else sample.mean_action
 
     # ----------------------------------------------------------------------------------------- act
-    def plan(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
-             first_step: jax.Array, explore_noise: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
-        """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A))."""
-        params, cfg = state.params, self.config
-        model = PlanningModel(
+    def planning_model(self, params) -> PlanningModel:
+        """The world model as MPPI's per-sample functions of a latent z (latent_dim,): the latent dynamics, the
+        reward head, the terminal value (``planner.terminal_q`` over the two Q heads drawn) and the policy prior."""
+        cfg = self.config
+        return PlanningModel(
             dynamics=lambda z, a: self._apply(params, z, a, method="next"),
             reward=lambda z, a: M.two_hot_inv(self._apply(params, z, a, method="reward"),
                                               cfg.model.num_bins, cfg.vmin, cfg.vmax),
-            value=lambda z, a, k: self._q_values(params, z, a, self._two_heads(k)).mean(axis=0),
+            value=lambda z, a, k: combine_terminal_q(self._q_values(params, z, a, self._two_heads(k)),
+                                                     cfg.planner.terminal_q),
             policy=lambda z, k: self._policy_sample(params, z, k).action,
         )
+
+    def plan(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
+             first_step: jax.Array, explore_noise: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
+        """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A))."""
+        params = state.params
         z = self._apply(params, obs, method="encode")
-        action, mean, _ = mppi_plan(cfg.planner, model, z, prev_mean, key, explore=explore,
-                                    first_step=first_step, explore_noise=explore_noise)
+        action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params), z, prev_mean, key,
+                                    explore=explore, first_step=first_step, explore_noise=explore_noise)
         return action, mean
