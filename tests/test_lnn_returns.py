@@ -66,4 +66,3 @@ def test_static_lambda_zero_skips_the_scan_and_equals_the_traced_path(data):
                                np.asarray(traced(rewards, values, jnp.float32(0.0))), rtol=1e-6, atol=1e-6)
     assert "scan" not in str(jax.make_jaxpr(lambda r, v: lambda_returns(r, v, 0.99, 0))(rewards, values))
     assert "scan" in str(jax.make_jaxpr(lambda r, v: lambda_returns(r, v, 0.99, 0.5))(rewards, values))
-

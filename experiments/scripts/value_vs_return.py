@@ -28,7 +28,6 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     import jax
     import jax.numpy as jnp
 
-    from lnnmpc.agents.math import two_hot_inv
     from lnnmpc.agents.returns import lambda_returns
     from lnnmpc.analysis.rollout import rollout
     from lnnmpc.train.evaluate import load_policy
@@ -36,20 +35,19 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     policy = load_policy(run, checkpoint)
     agent = policy.loop.agent
     heads = jnp.arange(agent.config.model.num_q)
-    q_of = jax.vmap(lambda params, z, a: agent._q_values(params, z, a, heads), in_axes=(None, 0, 0))  # (N, heads)
-    cfg = agent.config
-    r_of = jax.vmap(lambda params, z, a: two_hot_inv(agent._apply(params, z, a, method="reward"), cfg.model.num_bins,
-                                                     cfg.vmin, cfg.vmax), in_axes=(None, 0, 0))
+    # every head's Q (heads,) and the reward head's prediction () of one (z, a), vmapped over the recorded steps
+    heads_and_reward = jax.vmap(lambda params, z, a: (agent._q_values(params, z, a, heads),
+                                                      agent._predicted_reward(params, z, a)), in_axes=(None, 0, 0))
     rows = []
     for seed in range(policy.config.seeds):
         state = policy.seed_state(seed)
         records = rollout(agent, state, policy.loop.eval_env, jax.random.key(0), episodes)
         z, action = records["latent"], records["action"]
-        q = q_of(state.params, z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1]))
-        q_heads = np.asarray(q).reshape(*z.shape[:2], -1)  # (E, T, heads)
-        q, spread = q_heads.mean(axis=-1), q_heads.max(axis=-1) - q_heads.min(axis=-1)
-        r_hat = r_of(state.params, z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1]))
+        steps_z, steps_a = z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1])  # (E * T, ...)
+        q_heads, r_hat = heads_and_reward(state.params, steps_z, steps_a)
+        q_heads = np.asarray(q_heads).reshape(*z.shape[:2], -1)  # (E, T, heads)
         r_hat = np.asarray(r_hat).reshape(z.shape[:2])
+        q, spread = q_heads.mean(axis=-1), q_heads.max(axis=-1) - q_heads.min(axis=-1)
         # G_t to the episode's end: TD(1) targets with no value after the last step
         reward = jnp.asarray(records["reward"]).T  # time-major (T, E)
         g = np.asarray(lambda_returns(reward, jnp.zeros_like(reward), agent.config.gamma, 1.0)).T

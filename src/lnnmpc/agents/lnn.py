@@ -341,8 +341,7 @@ class LNNTDMPC2(TDMPC2):
 
         return PlanningModel(
             dynamics=dynamics,
-            reward=lambda lat, a: M.two_hot_inv(self._apply(params, lat["z"], a, method="reward"),
-                                                cfg.model.num_bins, cfg.vmin, cfg.vmax),
+            reward=lambda lat, a: self._predicted_reward(params, lat["z"], a),
             value=lambda lat, a, k: combine_terminal_q(self._q_values(params, lat["z"], a, self._two_heads(k)),
                                                        cfg.planner.terminal_q),
             policy=lambda lat, k: self._policy_sample(params, lat["z"], k).action,

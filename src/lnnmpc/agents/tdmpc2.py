@@ -193,6 +193,11 @@ class TDMPC2:
         logits = q_logits_of_heads(self.config.model, q_params, heads, z, action, dropout_key=key)
         return M.two_hot_inv(logits, self.config.model.num_bins, self.config.vmin, self.config.vmax)
 
+    def _predicted_reward(self, params, z, action):
+        """The reward head's prediction for (z, action), decoded from its two-hot logits: scalar per sample."""
+        return M.two_hot_inv(self._apply(params, z, action, method="reward"), self.config.model.num_bins,
+                             self.config.vmin, self.config.vmax)
+
     def _policy_sample(self, params, z, key):
         mean, raw = self._apply(params, z, method="policy")
         return M.sample_tanh_gaussian(key, mean, raw)
@@ -322,8 +327,7 @@ class TDMPC2:
         cfg = self.config
         return PlanningModel(
             dynamics=lambda z, a: self._apply(params, z, a, method="next"),
-            reward=lambda z, a: M.two_hot_inv(self._apply(params, z, a, method="reward"),
-                                              cfg.model.num_bins, cfg.vmin, cfg.vmax),
+            reward=lambda z, a: self._predicted_reward(params, z, a),
             value=lambda z, a, k: combine_terminal_q(self._q_values(params, z, a, self._two_heads(k)),
                                                      cfg.planner.terminal_q),
             policy=lambda z, k: self._policy_sample(params, z, k).action,
