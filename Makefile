@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install train eval video report compare tables test lint fmt bench bench-env bench-cells clean
+.PHONY: install train recipes eval video report compare tables test lint fmt bench bench-env bench-cells clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -18,6 +18,8 @@ install: $(STAMP)
 #            [TRAIN_ARGS="--set plan_horizon=5 --eval-every 20000 ..."]       (python -m lnnmpc.train.cli train -h)
 #            [TRAIN_ARGS="--eval-prior"]: every evaluation also plays its episodes with the policy prior alone
 # make train RESUME=<run folder> [STEPS=...]        continue a run exactly where its newest checkpoint left it
+# make train RECIPE=sparse [SEEDS=3] [TASK=...]      a task's measured best settings (`make recipes` lists them);
+#            TASK, AGENT, ENVS, OBS and EVAL_OBS come from the recipe unless given on the command line
 TASK     ?= walker-run
 AGENT    ?= cfc-zp-det
 SEEDS    ?= 1
@@ -27,14 +29,25 @@ OBS      ?=
 EVAL_OBS ?= $(OBS)
 TRAIN_ARGS ?=
 RESUME   ?=
+RECIPE   ?=
+# $(call given,VAR): non-empty where VAR was set on the command line or in the environment, not by this file
+given = $(filter command line environment,$(origin $(1)))
 train: $(STAMP)
-ifeq ($(RESUME),)
-	$(PY) -m lnnmpc.train.cli train --task $(TASK) --agent $(AGENT) --seeds $(SEEDS) --steps $(STEPS) \
-		--envs $(ENVS) --obs "$(OBS)" --eval-obs "$(EVAL_OBS)" $(TRAIN_ARGS)
-else
+ifneq ($(RESUME),)
 	$(PY) -m lnnmpc.train.cli train --resume "$(RESUME)" $(if $(filter command line,$(origin STEPS)),--steps $(STEPS)) \
 		$(TRAIN_ARGS)
+else ifneq ($(RECIPE),)
+	$(PY) -m lnnmpc.train.cli train --recipe "$(RECIPE)" --seeds $(SEEDS) --steps $(STEPS) \
+		$(if $(call given,TASK),--task $(TASK)) $(if $(call given,AGENT),--agent $(AGENT)) \
+		$(if $(call given,ENVS),--envs $(ENVS)) $(if $(call given,OBS),--obs "$(OBS)") \
+		$(if $(call given,EVAL_OBS),--eval-obs "$(EVAL_OBS)") $(TRAIN_ARGS)
+else
+	$(PY) -m lnnmpc.train.cli train --task $(TASK) --agent $(AGENT) --seeds $(SEEDS) --steps $(STEPS) \
+		--envs $(ENVS) --obs "$(OBS)" --eval-obs "$(EVAL_OBS)" $(TRAIN_ARGS)
 endif
+
+recipes: $(STAMP)
+	$(PY) -m lnnmpc.train.cli recipes
 
 # make eval RUN=<run folder> [OBS=...] [EPISODES=10] [BACKEND=mjx|dm_control] [CHECKPOINT=<env step>]
 #           [ACTOR=prior]: the policy prior alone acts (no MPPI), to see what planning adds

@@ -3,6 +3,8 @@
     python -m lnnmpc.train.cli train --task walker-run --seeds 4 --steps 200000 --obs "noise=0.1,flicker=0.2"
     python -m lnnmpc.train.cli train --resume runs/walker-run/tdmpc2/20260101-120000-noise0.1-flicker0.2
     python -m lnnmpc.train.cli train --task walker-run --agent cfc-zp-det --set lambda_=0 --check  # print only
+    python -m lnnmpc.train.cli train --recipe sparse --seeds 3     # a task's measured best settings (recipes.py)
+    python -m lnnmpc.train.cli recipes                             # list the recipes and what they measured
     python -m lnnmpc.train.cli eval RUN [--obs noise=0.3] [--episodes 10] [--backend mjx|dm_control] [--actor prior]
     python -m lnnmpc.train.cli eval RUN --planner iterations=12 --planner plan_horizon=5  # other MPPI settings
     python -m lnnmpc.train.cli video RUN [--out episode.gif] [--episodes 50 --falls-below 400]
@@ -24,6 +26,7 @@ import traceback
 from lnnmpc import envs
 from lnnmpc.agents.registry import AGENTS
 from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag, parse_overrides
+from lnnmpc.train.recipes import RECIPES, describe_recipes, recipe_values
 
 EXIT_CONFIG, EXIT_DIVERGED, EXIT_INTERRUPTED = 2, 3, 130
 
@@ -32,6 +35,8 @@ def _train_parser(sub) -> None:
     p = sub.add_parser("train", help="train (or resume) a run", argument_default=argparse.SUPPRESS,
                        description="Train an agent on one task for several seeds at once; write a run folder.")
     p.add_argument("--task", help=f"one of: {', '.join(envs.TASKS)}")
+    p.add_argument("--recipe", help=f"start from a recipe's settings, one of: {', '.join(RECIPES)} (the options "
+                   "given win; `recipes` lists them)")
     p.add_argument("--agent", help=f"one of: {', '.join(AGENTS)} (default tdmpc2; `make train` defaults to cfc-zp-det)")
     p.add_argument("--seeds", type=int, help="independent seeds trained together (default 1)")
     p.add_argument("--steps", type=int, help="environment steps per seed (default 200000)")
@@ -124,6 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     _eval_parser(sub)
     _video_parser(sub)
     sub.add_parser("report", help="redraw curve.png and summary.md").add_argument("run")
+    sub.add_parser("recipes", help="list the recipes (--recipe NAME): their settings and what they measured")
     return parser
 
 
@@ -141,6 +147,10 @@ def run_train(args: argparse.Namespace) -> str:
 
     values = _config_values(args)
     resume, steps, config = getattr(args, "resume", None), None, None
+    if "recipe" in values:
+        if resume:
+            raise ConfigError("--recipe starts a new run; a resumed run keeps the settings its config.json recorded")
+        values = recipe_values(values.pop("recipe"), values)
     if resume:
         saved = runfolder.saved_config(resume)
         steps = values.pop("steps", None)
@@ -185,6 +195,8 @@ def describe_setup(setup) -> str:
 def run_command(args: argparse.Namespace) -> None:
     if args.command == "train":
         run_train(args)
+    elif args.command == "recipes":
+        sys.stdout.write(describe_recipes())
     elif args.command == "eval":
         os.environ.setdefault("MUJOCO_GL", "disable")  # dm_control needs no OpenGL to step (no GLFW warnings)
         from lnnmpc.train.evaluate import evaluate

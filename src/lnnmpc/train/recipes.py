@@ -1,0 +1,114 @@
+"""Recipes: the measured best settings of a task, one flag away.
+
+``python -m lnnmpc.train.cli train --recipe sparse`` (``make train RECIPE=sparse``) trains with the trainer settings
+and agent hyperparameters that reached the best returns measured on that recipe's task; every flag the user gives
+as well (``--task``, ``--envs``, ``--set KEY=VALUE``, ...) wins over the recipe's. The expanded settings are what
+the run folder's ``config.json`` records, so a resumed or evaluated run needs no recipe.
+``python -m lnnmpc.train.cli recipes`` lists them.
+
+Each recipe names the run folders under ``experiments/results/`` that measured it; ``tests/test_recipes.py`` checks
+that the recipe still equals what those runs recorded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+from lnnmpc.train.config import ConfigError, parse_overrides
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """One named recipe.
+
+    ``task``, ``agent``: what it was measured on (a run's ``--task``/``--agent`` unless the user gives them).
+    ``train``: :class:`lnnmpc.train.config.TrainConfig` fields (the CLI's option names with ``_``), e.g. ``envs``.
+    ``overrides``: agent hyperparameters, as ``--set KEY=VALUE`` gives them.
+    ``measured``: what it scored, with the RESULTS.md entries. ``runs``: the run folders (under the repository) whose
+    ``config.json`` recorded exactly these settings.
+    """
+
+    name: str
+    task: str
+    agent: str
+    train: Mapping[str, Any]
+    overrides: Mapping[str, Any]
+    measured: str
+    runs: tuple[str, ...]
+
+    def values(self) -> dict[str, Any]:
+        """The CLI values the recipe sets: ``task``, ``agent``, its ``train`` fields and ``overrides`` (a dict)."""
+        return {"task": self.task, "agent": self.agent, **self.train, "overrides": dict(self.overrides)}
+
+    def flags(self) -> str:
+        """The recipe as command-line flags of ``train``."""
+        words = [f"--task {self.task}", f"--agent {self.agent}"]
+        for key, value in self.train.items():
+            if key == "obs":
+                value = ",".join(f"{k}={int(v) if isinstance(v, bool) else v}" for k, v in value.items())
+            words.append(f"--{key.replace('_', '-')} {value:g}" if isinstance(value, float)
+                         else f"--{key.replace('_', '-')} {value}")
+        words += [f"--set {key}={_text(value)}" for key, value in self.overrides.items()]
+        return " ".join(words)
+
+
+def _text(value: Any) -> str:
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
+_RESULTS = "experiments/results"
+
+RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
+    Recipe(
+        name="sparse", task="cartpole-swingup-sparse", agent="cfc-op-det",
+        train={"envs": 8, "explore_noise_beta": 1.0, "seed_noise_beta": 1.0, "seed_steps": 20_000},
+        overrides={"lambda_": 0, "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1},
+        measured=("799.3 ± 14.6 at 200K over 3 seeds (one per master seed 0, 1, 2; 804.8 / 811.2 / 781.9), "
+                  "RESULTS.md [69]; the thesis's cfc-op-det 799.5. Pink noise in the seed phase and in exploration "
+                  "finds the sparse reward on every seed ([54]-[56]); one-step TD targets and the learning rate "
+                  "decayed to 0.1 x over updates 50K-100K lift the plateau from ~730 ([67]-[69])."),
+        runs=tuple(f"{_RESULTS}/cfc-op-det-sparse-lambda0-lrdecay-h200/op-sparse-lambda0-lrdecay-seed{seed}"
+                   for seed in range(3))),
+    Recipe(
+        name="remove-vel", task="cartpole-swingup", agent="cfc-zp-det",
+        train={"envs": 8, "obs": {"remove_vel": True}},
+        overrides={"rollout_steps": 3, "rollout_stride": 3, "plan_horizon": 3, "num_q": 5},
+        measured=("cartpole-swingup without velocities: 806.5 ± 35.8 / 635.9 ± 210.5 / 819.5 ± 29.7 at 212,592 on "
+                  "master seeds 0 / 1 / 2 (3 seeds each; master seed 1 lost a seed late), RESULTS.md [30]-[32]; "
+                  "the thesis's best 868, TD-MPC2 193. Model losses 3 steps deep, planning over 3, 5 Q heads."),
+        runs=(f"{_RESULTS}/cfc-cartpole-novel-plan3-qheads-walker-h100-200k/cp-novel-r3s3-q5",
+              f"{_RESULTS}/cfc-cartpole-recipe-seed1-walker-enclr1-h200x2-200k/cp-recipe-seed1",
+              f"{_RESULTS}/cfc-cartpole-recipe-seed2-acrobot-opsparse-walker-lambda-h100x4-200k/cp-recipe-seed2")),
+    Recipe(
+        name="acrobot", task="acrobot-swingup", agent="cfc-zp-det",
+        train={"envs": 16, "explore_noise_beta": 1.0},
+        overrides={"rollout_steps": 6, "rollout_stride": 3, "lambda_": 0, "horizon": 16,
+                   "learn_episode_starts": True, "latent_head": "simnorm", "latent_size": 256},
+        measured=("acrobot-swingup: 365.8 at 200K over 3 seeds (one per master seed 0, 1, 2: 385.7 / 361.1 / "
+                  "350.7), RESULTS.md [55], [64]: the best acrobot line measured, far under the thesis's 883; "
+                  "TD-MPC2 278.1 here. Walker's training window and latent head, model losses 6 steps deep, pink "
+                  "exploration noise."),
+        runs=(f"{_RESULTS}/cfc-acrobot-depth6-pink-seeds02-h200-200k/acrobot-depth6-pink-seed0",
+              f"{_RESULTS}/cfc-acrobot-depth6-pink-seed1-h200x2-200k/acrobot-depth6-pink-seed1",
+              f"{_RESULTS}/cfc-acrobot-depth6-pink-seeds02-h200-200k/acrobot-depth6-pink-seed2")),
+)}
+
+
+def recipe_values(name: str, values: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``train`` command's ``values`` (only the options the user gave, as ``vars(args)``) completed with recipe
+    ``name``'s settings: the user's options win, and their ``--set`` items win over the recipe's overrides key by key.
+    Raises ConfigError naming an unknown recipe and the known ones."""
+    if name not in RECIPES:
+        raise ConfigError(f"unknown recipe {name!r}; known: {', '.join(RECIPES)} (`train --help`, `recipes`)")
+    recipe = RECIPES[name].values()
+    given = dict(values)
+    overrides = {**recipe.pop("overrides"), **parse_overrides(given.pop("overrides", None))}
+    return {**recipe, **given, "overrides": overrides}
+
+
+def describe_recipes() -> str:
+    """What ``python -m lnnmpc.train.cli recipes`` prints: each recipe's flags and what it measured."""
+    blocks = [f"{recipe.name}\n  {recipe.flags()}\n  measured: {recipe.measured}" for recipe in RECIPES.values()]
+    return "\n\n".join(blocks) + "\n"
