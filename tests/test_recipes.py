@@ -4,6 +4,7 @@ over it, and the CLI and the Makefile pass it on."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import os
 import subprocess
 
@@ -50,6 +51,11 @@ def test_recipe_values_leave_the_users_options_and_settings_in_front():
     assert recipe_values("acrobot", {})["overrides"]["latent_head"] == "simnorm"
     with pytest.raises(ConfigError, match="unknown recipe 'sprase'; known: sparse, remove-vel, acrobot"):
         recipe_values("sprase", {})
+    recipe = RECIPES["sparse"]
+    with pytest.raises(ConfigError, match=r"recipe 'x': unknown training settings \['env'\]; known: .*envs"):
+        dataclasses.replace(recipe, name="x", train={"env": 8})
+    with pytest.raises(ConfigError, match="recipe 'x': unknown task 'cartpole-swing'; known: .*cartpole-swingup"):
+        dataclasses.replace(recipe, name="x", task="cartpole-swing")
 
 
 def test_cli_trains_from_a_recipe_and_lists_them(tmp_path, capsys):
@@ -61,8 +67,11 @@ def test_cli_trains_from_a_recipe_and_lists_them(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "cartpole-swingup, cfc-zp-det, 2 seed(s) x 8 env(s), 200,000 env steps, obs novel" in out
     assert "agent overrides: num_q=2, plan_horizon=3, rollout_steps=3, rollout_stride=3\n" in out
+    assert capsys.readouterr().err == ""  # measured on that task and agent: no note
     main(["train", "--recipe", "sparse", "--small", "--task", "cartpole-swingup", "--out", str(run), "--check"])
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert err == ("note: recipe 'sparse' was measured on cartpole-swingup-sparse with cfc-op-det; this run trains "
+                   "cartpole-swingup with cfc-op-det\n")
     assert "cartpole-swingup, cfc-op-det, 1 seed(s) x 8 env(s)" in out
     assert "seed phase: 20,000 env steps of colored noise over each episode, spectrum 1/f^1, clipped" in out
     main(["train", "--recipe", "acrobot", "--small", "--out", str(run), "--check"])  # its overrides build an agent

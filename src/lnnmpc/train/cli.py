@@ -26,7 +26,7 @@ import traceback
 from lnnmpc import envs
 from lnnmpc.agents.registry import AGENTS
 from lnnmpc.train.config import ConfigError, TrainConfig, obs_tag, parse_overrides
-from lnnmpc.train.recipes import RECIPES, describe_recipes, recipe_values
+from lnnmpc.train.recipes import RECIPES, describe_recipes, recipe_departures, recipe_values
 
 EXIT_CONFIG, EXIT_DIVERGED, EXIT_INTERRUPTED = 2, 3, 130
 
@@ -150,7 +150,9 @@ def run_train(args: argparse.Namespace) -> str:
     if "recipe" in values:
         if resume:
             raise ConfigError("--recipe starts a new run; a resumed run keeps the settings its config.json recorded")
-        values = recipe_values(values.pop("recipe"), values)
+        recipe = values.pop("recipe")
+        values = recipe_values(recipe, values)
+        sys.stderr.write(recipe_departures(recipe, values))
     if resume:
         saved = runfolder.saved_config(resume)
         steps = values.pop("steps", None)

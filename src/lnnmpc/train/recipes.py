@@ -16,7 +16,8 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from lnnmpc.train.config import ConfigError, parse_overrides
+from lnnmpc import envs
+from lnnmpc.train.config import ConfigError, TrainConfig, parse_overrides
 
 
 @dataclasses.dataclass(frozen=True)
@@ -37,6 +38,15 @@ class Recipe:
     overrides: Mapping[str, Any]
     measured: str
     runs: tuple[str, ...]
+
+    def __post_init__(self):
+        fields = {field.name for field in dataclasses.fields(TrainConfig)} - {"task", "agent", "overrides"}
+        unknown = sorted(set(self.train) - fields)
+        if unknown:
+            raise ConfigError(f"recipe {self.name!r}: unknown training settings {unknown}; known: "
+                              f"{', '.join(sorted(fields))}")
+        if self.task not in envs.TASKS:
+            raise ConfigError(f"recipe {self.name!r}: unknown task {self.task!r}; known: {', '.join(envs.TASKS)}")
 
     def values(self) -> dict[str, Any]:
         """The CLI values the recipe sets: ``task``, ``agent``, its ``train`` fields and ``overrides`` (a dict)."""
@@ -106,6 +116,16 @@ def recipe_values(name: str, values: Mapping[str, Any]) -> dict[str, Any]:
     given = dict(values)
     overrides = {**recipe.pop("overrides"), **parse_overrides(given.pop("overrides", None))}
     return {**recipe, **given, "overrides": overrides}
+
+
+def recipe_departures(name: str, values: Mapping[str, Any]) -> str:
+    """A note where the expanded ``values`` train another task or agent than recipe ``name`` was measured on
+    (empty where they do not)."""
+    recipe = RECIPES[name]
+    if (values["task"], values["agent"]) == (recipe.task, recipe.agent):
+        return ""
+    return (f"note: recipe {name!r} was measured on {recipe.task} with {recipe.agent}; this run trains "
+            f"{values['task']} with {values['agent']}\n")
 
 
 def describe_recipes() -> str:
