@@ -191,6 +191,40 @@ def test_dry_run_lists_the_grid(tmp_path, capsys):
     assert run.main(["fig5_18", "--agents", "cfc-op-det", "--dry-run"]) == 2
 
 
+def test_recipes_give_the_matching_runs_their_settings_and_folders(tmp_path, capsys):
+    options = grid.GridOptions(runs_dir=str(tmp_path), recipes=True)
+    specs = {(s.condition.task, s.agent): s for s in grid.expand(grid.get_study("table5_3"), options)}
+    sparse = specs["cartpole-swingup-sparse", "cfc-op-det"]
+    assert sparse.recipe == "sparse"
+    assert sparse.folder == str(tmp_path / "cartpole-swingup-sparse" / "cfc-op-det"
+                                / "clean-seeds3-envs8-recipe-sparse")
+    config = sparse.config
+    assert (config.envs, config.seed_steps, config.explore_noise_beta, config.seed_noise_beta) == (8, 20_000, 1.0, 1.0)
+    assert config.overrides == {"lambda_": 0, "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1}
+    acrobot = specs["acrobot-swingup", "cfc-zp-det"]
+    assert acrobot.recipe == "acrobot" and acrobot.config.envs == 16
+    assert acrobot.folder.endswith("-envs16-recipe-acrobot")
+    assert sorted(s.recipe for s in specs.values() if s.recipe) == ["acrobot", "sparse"]  # 2 of 28 runs
+    plain = specs["cartpole-swingup-sparse", "tdmpc2"]
+    assert plain.folder.endswith("clean-seeds3") and plain.config.envs == 1 and plain.config.overrides == {}
+    assert plain == grid.expand(grid.get_study("table5_3"), grid.GridOptions(runs_dir=str(tmp_path)))[7]
+    noisy = {(s.condition.train_obs, s.agent): s for s in grid.expand(grid.get_study("table5_4"), options)}
+    assert noisy["remove_vel=1", "cfc-zp-det"].recipe == "remove-vel"  # its corruption matches; the noisy one does not
+    assert noisy["remove_vel=1", "cfc-zp-det"].config.overrides["num_q"] == 5
+    assert not noisy["noise=0.1,flicker=0.2", "cfc-zp-det"].recipe
+    short = grid.expand(grid.get_study("table5_3"), dataclasses.replace(options, steps=10_000))
+    assert {s.config.seed_steps for s in short} == {5000, 10_000}  # the recipe's 20K seed phase capped at the budget
+    study = grid.get_study("table5_3")
+    text = markdown(study, study_rows(study, list(specs.values()), options.steps))
+    assert "| cartpole-swingup-sparse | clean | clean | cfc-op-det (recipe `sparse`) | not yet run |" in text
+    assert "| cartpole-swingup-sparse | clean | clean | tdmpc2 | not yet run |" in text
+    assert run.main(["table5_3", "--recipes", "--agents", "cfc-op-det", "--tasks", "cartpole-swingup-sparse",
+                     "--dry-run", "--runs-dir", str(tmp_path)]) == 0
+    assert "cfc-op-det/clean-seeds3-envs8-recipe-sparse" in capsys.readouterr().out
+    with pytest.raises(ConfigError, match="recipes must be True or False, got 'yes'"):
+        grid.GridOptions(recipes="yes")
+
+
 def test_select_conditions_by_task_and_training_corruption(tmp_path, capsys):
     options = grid.GridOptions(runs_dir=str(tmp_path), agents=("tdmpc2",))
     specs = grid.expand(grid.get_study("table5_3"), options)

@@ -31,7 +31,7 @@ from lnnmpc.train.config import obs_tag, parse_obs
 
 FIELDS = ("study", "source", "task", "train_obs", "eval_obs", "agent", "horizon", "status", "run", "env_step",
           "seeds", "episodes", "mean", "std", "std_seeds", "planner_ms", "planner_ms_std", "thesis_mean",
-          "thesis_std", "thesis_source", "tdmpc2_mean", "tdmpc2_std")
+          "thesis_std", "thesis_source", "tdmpc2_mean", "tdmpc2_std", "recipe")
 NOT_RUN = "not yet run"
 
 
@@ -117,7 +117,7 @@ def _row(study: Study, spec: RunSpec, obs: str, horizon: int | None, steps: int,
     row = {key: "" for key in FIELDS}
     row.update(study=study.name, source=study.source, task=task, train_obs=obs_tag(parse_obs(spec.condition.train_obs)),
                eval_obs=obs_tag(parse_obs(obs)), agent=spec.agent, horizon="" if horizon is None else horizon,
-               status=run_status(spec.folder, steps), run=spec.folder)
+               status=run_status(spec.folder, steps), run=spec.folder, recipe=spec.recipe)
     if horizon is None:  # the thesis's tables have no per-horizon numbers
         for prefix, ref in (("thesis", thesis_value(task, obs, spec.agent)), ("tdmpc2", tdmpc2_value(task, obs))):
             if ref is not None:
@@ -153,7 +153,8 @@ def markdown(study: Study, rows: list[dict]) -> str:
     lines = [f"### {study.source} ({study.name})", "", "| " + " | ".join(head) + " |",
              "|" + "|".join("---" if i < 4 else "---:" for i in range(len(head))) + "|"]
     for r in rows:
-        cells = [r["task"], r["train_obs"], r["eval_obs"], r["agent"]] + ([str(r["horizon"])] if timed else [])
+        agent = r["agent"] + (f" (recipe `{r['recipe']}`)" if r.get("recipe") else "")
+        cells = [r["task"], r["train_obs"], r["eval_obs"], agent] + ([str(r["horizon"])] if timed else [])
         if r["mean"] == "":
             cells += [NOT_RUN if r["status"] == "new" else f"{NOT_RUN} ({r['status']})", "", "", ""]
         else:

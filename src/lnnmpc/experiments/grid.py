@@ -5,7 +5,7 @@ evaluated under) and agents. :func:`expand` turns a study and :class:`GridOption
 per (condition, agent): a :class:`lnnmpc.TrainConfig` whose ``seeds`` are trained together in one compiled
 program, in a deterministic run folder
 
-    <runs_dir>/<task>/<agent>/<train tag>-seeds<N>[-envs<M>][-size1][-small]
+    <runs_dir>/<task>/<agent>/<train tag>-seeds<N>[-envs<M>][-size1][-small][-recipe-<name>]
 
 (no timestamp), so running a study again finds its runs: finished runs are skipped, partial ones resumed by the
 trainer. Runs are shared between studies (Figure 5.19 reuses Table 5.3's acrobot ``cfc-zp-det`` run).
@@ -22,6 +22,7 @@ import re
 
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
+from lnnmpc.train.recipes import RECIPES, Recipe
 
 STATUSES = ("new", "partial", "finished")
 
@@ -89,7 +90,11 @@ class GridOptions:
     run finish inside one 30-minute hold of a lent GPU.
 
     ``eval_prior``: the runs' training-time evaluations also play their episodes with the policy prior alone
-    (``TrainConfig.eval_prior``; eval.csv's ``prior_return``); a run that exists may turn it on when resumed."""
+    (``TrainConfig.eval_prior``; eval.csv's ``prior_return``); a run that exists may turn it on when resumed.
+
+    ``recipes``: a run whose task, agent and training corruption match a recipe (:mod:`lnnmpc.train.recipes`)
+    trains with that recipe's settings (its environments per seed, noise, seed phase and agent overrides) in a
+    folder of its own (``-recipe-<name>``), and the tables read it; the other runs are unchanged."""
 
     steps: int = 200_000
     seeds: int = 3
@@ -102,12 +107,14 @@ class GridOptions:
     backend: str = "mjx"
     eval_every: int = 10_000
     eval_prior: bool = False
+    recipes: bool = False
 
     def __post_init__(self):
         for name in ("steps", "seeds", "envs", "episodes", "eval_every"):
             require_int(name, getattr(self, name), 1)
-        if not isinstance(self.eval_prior, bool):
-            raise ConfigError(f"eval_prior must be True or False, got {self.eval_prior!r}")
+        for name in ("eval_prior", "recipes"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name} must be True or False, got {getattr(self, name)!r}")
         if self.backend not in BACKENDS:
             raise ConfigError(f"unknown backend {self.backend!r}; known: {', '.join(BACKENDS)}")
         if self.agents is not None:
@@ -123,6 +130,7 @@ class RunSpec:
     agent: str
     config: TrainConfig
     horizons: tuple[int, ...] = ()
+    recipe: str = ""  # the recipe whose settings the run trains with (GridOptions.recipes), else empty
 
     @property
     def folder(self) -> str:
@@ -135,12 +143,23 @@ def get_study(name: str) -> Study:
     return STUDIES[name]
 
 
-def run_folder(runs_dir: str, task: str, agent: str, train_obs: str, options: GridOptions) -> str:
-    """The deterministic folder of a run (module docstring)."""
+def run_folder(runs_dir: str, task: str, agent: str, train_obs: str, options: GridOptions,
+               recipe: Recipe | None = None) -> str:
+    """The deterministic folder of a run (module docstring); a ``recipe``'s run has its environments per seed."""
+    envs = options.envs if recipe is None else recipe.train.get("envs", options.envs)
     name = f"{obs_tag(parse_obs(train_obs))}-seeds{options.seeds}"
-    name += (f"-envs{options.envs}" if options.envs != 1 else "") + ("-size1" if options.model_size == 1 else "")
-    name += "-small" if options.small else ""
+    name += (f"-envs{envs}" if envs != 1 else "") + ("-size1" if options.model_size == 1 else "")
+    name += ("-small" if options.small else "") + ("" if recipe is None else f"-recipe-{recipe.name}")
     return os.path.join(runs_dir, task, agent, name)
+
+
+def matching_recipe(condition: Condition, agent: str) -> Recipe | None:
+    """The recipe measured on ``condition``'s task and training corruption with ``agent`` (None: none)."""
+    for recipe in RECIPES.values():
+        if (recipe.task, recipe.agent) == (condition.task, agent) and (
+                parse_obs(recipe.train.get("obs", {})) == parse_obs(condition.train_obs)):
+            return recipe
+    return None
 
 
 def measured_elsewhere(folder: str) -> tuple[str, int] | None:
@@ -172,13 +191,19 @@ def expand(study: Study, options: GridOptions) -> list[RunSpec]:
     specs = []
     for condition in study.conditions:
         for agent in agents:
-            folder = run_folder(options.runs_dir, condition.task, agent, condition.train_obs, options)
+            recipe = matching_recipe(condition, agent) if options.recipes else None
+            folder = run_folder(options.runs_dir, condition.task, agent, condition.train_obs, options, recipe)
+            settings = {"envs": options.envs, "seed_steps": 5000, "overrides": {}}
+            if recipe is not None:
+                settings.update({k: v for k, v in recipe.train.items() if k != "obs"},
+                                overrides=dict(recipe.overrides))
+            settings["seed_steps"] = min(settings["seed_steps"], options.steps)
             config = TrainConfig(task=condition.task, agent=agent, seeds=options.seeds, steps=options.steps,
-                                 envs=options.envs, obs=condition.train_obs, model_size=options.model_size,
-                                 small=options.small, seed_steps=min(5000, options.steps), out=folder,
-                                 eval_every=saved_eval_every(folder) or options.eval_every,
-                                 eval_prior=options.eval_prior)
-            specs.append(RunSpec(study.name, condition, agent, config, study.horizons))
+                                 obs=condition.train_obs, model_size=options.model_size, small=options.small,
+                                 out=folder, eval_every=saved_eval_every(folder) or options.eval_every,
+                                 eval_prior=options.eval_prior, **settings)
+            specs.append(RunSpec(study.name, condition, agent, config, study.horizons,
+                                 "" if recipe is None else recipe.name))
     return specs
 
 

@@ -154,6 +154,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--eval-prior", action="store_true",
                    help="the runs' training-time evaluations also play their episodes with the policy prior alone "
                         "(eval.csv's prior_return)")
+    p.add_argument("--recipes", action="store_true",
+                   help="runs that match a recipe (`python -m lnnmpc.train.cli recipes`) train with its settings, in "
+                        "folders of their own, and fill the tables")
     p.add_argument("--backend", default="mjx", choices=("mjx", "dm_control"))
     p.add_argument("--runs-dir", default=GridOptions.runs_dir, help="where run folders live")
     p.add_argument("--out", default=DEFAULT_OUT, help="where the CSV and Markdown tables go")
@@ -175,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
         options = GridOptions(steps=args.steps, seeds=args.seeds, agents=agents, envs=args.envs,
                               model_size=args.model_size, small=args.small, runs_dir=args.runs_dir,
                               episodes=args.episodes, backend=args.backend, eval_every=args.eval_every,
-                              eval_prior=args.eval_prior)
+                              eval_prior=args.eval_prior, recipes=args.recipes)
         return "\n".join(run_study(args.name, options, out=args.out, dry_run=args.dry_run,
                                    train=not (args.no_train or args.aggregate_only),
                                    evaluate=not args.aggregate_only, tasks=_split(args.tasks),
