@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from lnnmpc.analysis import cartpole, metrics, report
+from lnnmpc.analysis import acrobot, cartpole, metrics, report
 from lnnmpc.analysis.projection import log_speed
 from lnnmpc.analysis.rollout import rollout_program
 from lnnmpc.train import runfolder
@@ -215,13 +215,56 @@ def test_cartpole_analysis_reports_every_seed_and_refuses_other_tasks(tmp_path, 
     assert 0 <= row["return"] <= 40 and row["turns"] > 0  # an untrained agent moves the pole, rarely up
     assert 0 <= row["sparse_region_share"] <= row["upright_share"] <= 1 and row["mean_abs_cart"] >= 0
     assert "| seed | return | turns |" in capsys.readouterr().out
-    other = tmp_path / "acrobot"
-    os.makedirs(other)
-    runfolder.write_config(str(other), TrainConfig(task="acrobot-swingup", agent="cfc-zp-det", small=True,
-                                                    out=str(other), compile_cache=""), {})
-    assert cartpole.main([str(other)]) == 2
+    other = _config_only_run(tmp_path / "acrobot", "acrobot-swingup")
+    assert cartpole.main([other]) == 2
     assert "trained on acrobot-swingup" in capsys.readouterr().err
     assert cartpole.main([run, "--episodes", "0"]) == 2
+
+
+def test_acrobot_tip_from_mujoco_matches_the_links_geometry():
+    """MuJoCo's kinematics of dm_control's acrobot against the two unit links hinged at the shoulder, z = 2 (float64
+    numpy): the tip at (sin q1 + sin(q1 + q2), 2 + cos q1 + cos(q1 + q2)) up to the x axis's sign; target (0, 4)."""
+    qpos = np.random.default_rng(0).uniform(-np.pi, np.pi, (3, 7, 2))
+    tips, shoulder, target, radius = acrobot.tip_positions(qpos)
+    q1, q12 = qpos[..., 0], qpos.sum(-1)
+    np.testing.assert_allclose(tips[..., 2], 2 + np.cos(q1) + np.cos(q12), atol=1e-12)
+    np.testing.assert_allclose(np.abs(tips[..., 0]), np.abs(np.sin(q1) + np.sin(q12)), atol=1e-12)
+    np.testing.assert_allclose(tips[..., 1], 0.0, atol=1e-12)
+    np.testing.assert_allclose(shoulder, [0, 0, 2])
+    np.testing.assert_allclose(target, [0, 0, 4])
+    assert radius == pytest.approx(0.2)
+
+
+def test_acrobot_episode_stats_of_known_trajectories(tmp_path, capsys):
+    T = 1200
+    t = np.arange(T) / T
+    upright = np.zeros((T, 2))
+    hanging = np.tile([np.pi, 0.0], (T, 1))
+    whirl = np.stack([np.angle(np.exp(1j * (np.pi + 3 * 2 * np.pi * t))), np.zeros(T)], axis=-1)  # wrapped
+    swing_then_balance = np.where(t[:, None] < 0.5, hanging, upright)
+    stats = acrobot.episode_stats(np.stack([upright, hanging, whirl, swing_then_balance]))
+    np.testing.assert_allclose(stats["shoulder_turns"], [0, 0, 3 * (T - 1) / T, 0.5], atol=1e-9)
+    np.testing.assert_allclose(stats["elbow_turns"], 0.0, atol=1e-12)
+    arc = 2 * np.arcsin(0.05) / np.pi  # the outstretched tip within 0.2 of the target: 4 |sin(θ / 2)| <= 0.2
+    np.testing.assert_allclose(stats["target_share"], [1, 0, arc, 0.5], atol=2e-3)
+    np.testing.assert_allclose(stats["longest_target_stay"], [1, 0, arc / 3, 0.5], atol=2e-3)  # one pass a turn
+    np.testing.assert_allclose(stats["tip_above_share"], [1, 0, 0.5, 0.5], atol=2e-3)
+    np.testing.assert_allclose(stats["mean_tip_distance"][[0, 1, 3]], [0, 4, 2], atol=1e-9)
+    np.testing.assert_array_equal(acrobot.longest_stay(np.array([[1, 1, 0, 1, 1, 1, 0], [0] * 7], bool)), [3, 0])
+    with pytest.raises(ValueError, match=r"\(episodes, steps, 2\) = \[shoulder angle, elbow angle\]"):
+        acrobot.episode_stats(np.zeros((5, 2)))
+    other = _config_only_run(tmp_path / "cartpole", "cartpole-swingup")
+    assert acrobot.main([other]) == 2
+    assert "trained on cartpole-swingup: this analysis reads acrobot's joints" in capsys.readouterr().err
+    assert acrobot.main([other, "--length", "1"]) == 2
+
+
+def _config_only_run(folder, task: str) -> str:
+    """A run folder of ``task`` with its config.json only (what the analyses read before they roll out)."""
+    os.makedirs(folder)
+    runfolder.write_config(str(folder), TrainConfig(task=task, agent="cfc-zp-det", small=True, out=str(folder),
+                                                    compile_cache=""), {})
+    return str(folder)
 
 
 def _rank_run(folder, rows, rank_column=True, model=None):

@@ -7,4 +7,6 @@
   observations, actions and the true physical state.
 * :mod:`~lnnmpc.analysis.projection`: UMAP projections (``umap-learn``, imported on use).
 * :mod:`~lnnmpc.analysis.report`: ``python -m lnnmpc.analysis.report RUN`` writes CSVs and figures.
+* :mod:`~lnnmpc.analysis.cartpole`, :mod:`~lnnmpc.analysis.acrobot` (on :mod:`~lnnmpc.analysis.episodes`): what each
+  seed of a run does with the pole and cart, or the two links, in deterministic episodes.
 """

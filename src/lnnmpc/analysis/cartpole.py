@@ -20,14 +20,12 @@ prints the rows as a markdown table.
 
 from __future__ import annotations
 
-import argparse
-import os
 import sys
 
 import numpy as np
 
+from lnnmpc.analysis import episodes as episodes_
 from lnnmpc.envs.tasks import CART_BOUNDS, UPRIGHT_COSINE_BOUNDS
-from lnnmpc.train import runfolder
 
 STATS = ("turns", "upright_share", "sparse_region_share", "mean_abs_cart")
 
@@ -49,24 +47,7 @@ def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
 def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None) -> list[dict]:
     """One row per trained seed of the cartpole run ``run``: its episodes' mean return and :data:`STATS` (means over
     ``episodes`` deterministic episodes of ``length`` agent steps, default the task's), with ``env_step``."""
-    import jax
-
-    from lnnmpc.analysis.rollout import rollout
-    from lnnmpc.train.evaluate import load_policy
-
-    config = runfolder.saved_config(run)
-    if not config.task.startswith("cartpole"):
-        raise ValueError(f"{run} trained on {config.task}: this analysis reads cartpole's cart and pole")
-    policy = load_policy(run, checkpoint)
-    rows = []
-    for seed in range(config.seeds):
-        state = policy.seed_state(seed)
-        records = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes, length)
-        stats = episode_stats(records["qpos"])
-        rows.append({"env_step": policy.checkpoint, "seed": seed, "episodes": episodes,
-                     "return": float(records["reward"].sum(axis=1).mean()),
-                     **{name: float(values.mean()) for name, values in stats.items()}})
-    return rows
+    return episodes_.seed_rows(run, "cartpole", episode_stats, checkpoint, episodes, length)
 
 
 def markdown(rows: list[dict]) -> str:
@@ -78,28 +59,9 @@ def markdown(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m lnnmpc.analysis.cartpole", description=__doc__.split("\n")[0])
-    p.add_argument("run", help="run folder of a cartpole task")
-    p.add_argument("--checkpoint", type=int, default=None, help="env step of the checkpoint (default: the newest)")
-    p.add_argument("--episodes", type=int, default=4, help="deterministic episodes per seed")
-    p.add_argument("--length", type=int, default=None, help="agent steps per episode (default: the task's)")
-    p.add_argument("--out", default=None, help="folder of cartpole_episodes.csv (default <run>/analysis/<step>)")
-    args = p.parse_args(argv)
-    if args.episodes < 1 or (args.length is not None and args.length < 2):
-        print(f"--episodes must be >= 1 and --length >= 2, got {args.episodes} and {args.length}", file=sys.stderr)
-        return 2
-    try:
-        rows = seed_rows(args.run, args.checkpoint, args.episodes, args.length)
-    except (ValueError, FileNotFoundError) as error:
-        print(error, file=sys.stderr)
-        return 2
-    out = args.out or os.path.join(args.run, "analysis", str(rows[0]["env_step"]))
-    os.makedirs(out, exist_ok=True)
-    path = os.path.join(out, "cartpole_episodes.csv")
-    runfolder.write_csv(path, ["env_step", "seed", "episodes", "return", *STATS], rows)
-    print(markdown(rows))
-    print(f"-> {path}")
-    return 0
+    return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.cartpole", description=__doc__.split("\n")[0],
+                                   domain="cartpole", filename="cartpole_episodes.csv", stats=STATS,
+                                   episode_stats=episode_stats, markdown=markdown)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,103 @@
+"""``python -m lnnmpc.analysis.acrobot RUN``: what an acrobot agent does with its two links, seed by seed.
+
+    python -m lnnmpc.analysis.acrobot <run folder> [--checkpoint STEP] [--episodes 4] [--length T]
+
+Plays deterministic episodes (the trainer's evaluation protocol, :func:`lnnmpc.analysis.rollout.rollout`; the same
+key for every seed) with each trained seed of an acrobot run and reports what a return alone does not say:
+
+* ``shoulder_turns``, ``elbow_turns``: full turns of each joint per episode (the unwrapped angle's total
+  variation / 2π); a policy that swings up and balances turns each link about half a turn, one that whirls the
+  links through the top several;
+* ``tip_above_share``: the share of agent steps with the tip above the shoulder (swung up);
+* ``target_share``: the share with the tip inside the target sphere (radius 0.2), where acrobot-swingup-sparse
+  pays and acrobot-swingup pays fully;
+* ``longest_target_stay``: the longest run of consecutive agent steps in the target, as a share of the episode:
+  balancing shows as one long stay, whirling as many short passes;
+* ``mean_tip_distance``: the mean distance of the tip from the target.
+
+The tip comes from MuJoCo's kinematics of dm_control's acrobot model at each recorded joint position (qpos = 0:
+both links upright, the tip on the target). Writes ``<run>/analysis/<step>/acrobot_episodes.csv`` (or ``--out``;
+one row per seed, means over the episodes) and prints the rows as a markdown table.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from lnnmpc.analysis import episodes as episodes_
+
+STATS = ("shoulder_turns", "elbow_turns", "tip_above_share", "target_share", "longest_target_stay",
+         "mean_tip_distance")
+
+
+def tip_positions(qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """MuJoCo kinematics of the acrobot at joint positions ``qpos`` (..., 2) = [shoulder, elbow]: the tip's
+    position (..., 3), the shoulder's (3,), the target's (3,) and the target's radius."""
+    import mujoco
+
+    from lnnmpc import envs
+
+    model = envs.make("acrobot-swingup").mj_model
+    data = mujoco.MjData(model)
+    flat = np.asarray(qpos, np.float64).reshape(-1, 2)
+    tips = np.empty((len(flat), 3))
+    for i, q in enumerate(flat):
+        data.qpos[:] = q
+        mujoco.mj_kinematics(model, data)
+        tips[i] = data.site("tip").xpos
+    shoulder = np.array(data.body("upper_arm").xpos)
+    return (tips.reshape(*np.shape(qpos)[:-1], 3), shoulder, np.array(data.site("target").xpos),
+            float(model.site_size[model.site("target").id, 0]))
+
+
+def longest_stay(inside: np.ndarray) -> np.ndarray:
+    """The longest run of consecutive True along the last axis of ``inside`` (E, T), in steps (E,)."""
+    best = np.zeros(inside.shape[0], dtype=np.int64)
+    run = np.zeros(inside.shape[0], dtype=np.int64)
+    for column in np.asarray(inside, bool).T:
+        run = np.where(column, run + 1, 0)
+        best = np.maximum(best, run)
+    return best
+
+
+def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-episode statistics (each (E,)) of acrobot joint positions ``qpos`` (E, T, 2): [shoulder, elbow] angles
+    at each agent step (module docstring)."""
+    qpos = np.asarray(qpos, dtype=np.float64)
+    if qpos.ndim != 3 or qpos.shape[-1] != 2:
+        raise ValueError(f"qpos must be (episodes, steps, 2) = [shoulder angle, elbow angle], got {qpos.shape}")
+    turns = np.abs(np.diff(np.unwrap(qpos, axis=1), axis=1)).sum(axis=1) / (2 * np.pi)
+    tips, shoulder, target, radius = tip_positions(qpos)
+    distance = np.linalg.norm(tips - target, axis=-1)
+    inside = distance <= radius
+    return {"shoulder_turns": turns[:, 0], "elbow_turns": turns[:, 1],
+            "tip_above_share": (tips[..., 2] > shoulder[2]).mean(axis=1), "target_share": inside.mean(axis=1),
+            "longest_target_stay": longest_stay(inside) / qpos.shape[1], "mean_tip_distance": distance.mean(axis=1)}
+
+
+def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None) -> list[dict]:
+    """One row per trained seed of the acrobot run ``run``: its episodes' mean return and :data:`STATS` (means over
+    ``episodes`` deterministic episodes of ``length`` agent steps, default the task's), with ``env_step``."""
+    return episodes_.seed_rows(run, "acrobot", episode_stats, checkpoint, episodes, length)
+
+
+def markdown(rows: list[dict]) -> str:
+    head = ("| seed | return | shoulder turns | elbow turns | tip above shoulder | in target | longest stay in target "
+            "| mean tip distance |")
+    lines = [head, "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += [f"| {r['seed']} | {r['return']:.1f} | {r['shoulder_turns']:.1f} | {r['elbow_turns']:.1f} | "
+              f"{r['tip_above_share']:.3f} | {r['target_share']:.3f} | {r['longest_target_stay']:.3f} | "
+              f"{r['mean_tip_distance']:.2f} |" for r in rows]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.acrobot", description=__doc__.split("\n")[0],
+                                   domain="acrobot", filename="acrobot_episodes.csv", stats=STATS,
+                                   episode_stats=episode_stats, markdown=markdown)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
