@@ -57,7 +57,7 @@ from flax import struct
 
 from lnnmpc.agents import math as M
 from lnnmpc.agents.lnn_model import HEAD_ONLY_SETTINGS, LNNModelConfig, LNNWorldModel, encoder_input, make_cell
-from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, combine_terminal_q, mppi_plan
+from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
 from lnnmpc.agents.returns import lambda_returns
 from lnnmpc.agents.tdmpc2 import TDMPC2, AgentState, TDMPC2Config, make_optimizers
 from lnnmpc.nets import unroll
@@ -342,8 +342,7 @@ class LNNTDMPC2(TDMPC2):
         return PlanningModel(
             dynamics=dynamics,
             reward=lambda lat, a: self._predicted_reward(params, lat["z"], a),
-            value=lambda lat, a, k: combine_terminal_q(self._q_values(params, lat["z"], a, self._two_heads(k)),
-                                                       cfg.planner.terminal_q),
+            value=lambda lat, a, k: self._planning_value(params, lat["z"], a, k),
             policy=lambda lat, k: self._policy_sample(params, lat["z"], k).action,
         )
 

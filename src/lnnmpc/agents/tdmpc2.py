@@ -198,6 +198,12 @@ class TDMPC2:
         return M.two_hot_inv(self._apply(params, z, action, method="reward"), self.config.model.num_bins,
                              self.config.vmin, self.config.vmax)
 
+    def _planning_value(self, params, z, action, key):
+        """MPPI's terminal value of (z, action): the two Q heads ``key`` draws, combined by ``planner.terminal_q``
+        (their mean as TD-MPC2, or their minimum): scalar per sample."""
+        return combine_terminal_q(self._q_values(params, z, action, self._two_heads(key)),
+                                  self.config.planner.terminal_q)
+
     def _policy_sample(self, params, z, key):
         mean, raw = self._apply(params, z, method="policy")
         return M.sample_tanh_gaussian(key, mean, raw)
@@ -324,12 +330,10 @@ class TDMPC2:
     def planning_model(self, params) -> PlanningModel:
         """The world model as MPPI's per-sample functions of a latent z (latent_dim,): the latent dynamics, the
         reward head, the terminal value (``planner.terminal_q`` over the two Q heads drawn) and the policy prior."""
-        cfg = self.config
         return PlanningModel(
             dynamics=lambda z, a: self._apply(params, z, a, method="next"),
             reward=lambda z, a: self._predicted_reward(params, z, a),
-            value=lambda z, a, k: combine_terminal_q(self._q_values(params, z, a, self._two_heads(k)),
-                                                     cfg.planner.terminal_q),
+            value=lambda z, a, k: self._planning_value(params, z, a, k),
             policy=lambda z, k: self._policy_sample(params, z, k).action,
         )
 
