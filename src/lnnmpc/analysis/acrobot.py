@@ -37,9 +37,9 @@ def tip_positions(qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray,
     position (..., 3), the shoulder's (3,), the target's (3,) and the target's radius."""
     import mujoco
 
-    from lnnmpc import envs
+    from lnnmpc.train.setup import shared_env
 
-    model = envs.make("acrobot-swingup").mj_model
+    model = shared_env("acrobot-swingup", "fast", {}).mj_model  # the process's Env of the task, not a new one
     data = mujoco.MjData(model)
     flat = np.asarray(qpos, np.float64).reshape(-1, 2)
     tips = np.empty((len(flat), 3))
