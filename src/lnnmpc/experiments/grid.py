@@ -143,13 +143,11 @@ def get_study(name: str) -> Study:
     return STUDIES[name]
 
 
-def run_folder(runs_dir: str, task: str, agent: str, train_obs: str, options: GridOptions,
-               recipe: Recipe | None = None) -> str:
-    """The deterministic folder of a run (module docstring); a ``recipe``'s run has its environments per seed."""
-    envs = options.envs if recipe is None else recipe.train.get("envs", options.envs)
+def run_folder(runs_dir: str, task: str, agent: str, train_obs: str, options: GridOptions, recipe: str = "") -> str:
+    """The deterministic folder of a run (module docstring); ``recipe``: the name of the recipe it trains with."""
     name = f"{obs_tag(parse_obs(train_obs))}-seeds{options.seeds}"
-    name += (f"-envs{envs}" if envs != 1 else "") + ("-size1" if options.model_size == 1 else "")
-    name += ("-small" if options.small else "") + ("" if recipe is None else f"-recipe-{recipe.name}")
+    name += (f"-envs{options.envs}" if options.envs != 1 else "") + ("-size1" if options.model_size == 1 else "")
+    name += ("-small" if options.small else "") + (f"-recipe-{recipe}" if recipe else "")
     return os.path.join(runs_dir, task, agent, name)
 
 
@@ -192,18 +190,18 @@ def expand(study: Study, options: GridOptions) -> list[RunSpec]:
     for condition in study.conditions:
         for agent in agents:
             recipe = matching_recipe(condition, agent) if options.recipes else None
-            folder = run_folder(options.runs_dir, condition.task, agent, condition.train_obs, options, recipe)
             settings = {"envs": options.envs, "seed_steps": 5000, "overrides": {}}
             if recipe is not None:
                 settings.update({k: v for k, v in recipe.train.items() if k != "obs"},
                                 overrides=dict(recipe.overrides))
             settings["seed_steps"] = min(settings["seed_steps"], options.steps)
+            folder = run_folder(options.runs_dir, condition.task, agent, condition.train_obs,
+                                dataclasses.replace(options, envs=settings["envs"]), recipe.name if recipe else "")
             config = TrainConfig(task=condition.task, agent=agent, seeds=options.seeds, steps=options.steps,
                                  obs=condition.train_obs, model_size=options.model_size, small=options.small,
                                  out=folder, eval_every=saved_eval_every(folder) or options.eval_every,
                                  eval_prior=options.eval_prior, **settings)
-            specs.append(RunSpec(study.name, condition, agent, config, study.horizons,
-                                 "" if recipe is None else recipe.name))
+            specs.append(RunSpec(study.name, condition, agent, config, study.horizons, recipe.name if recipe else ""))
     return specs
 
 
