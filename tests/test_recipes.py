@@ -3,18 +3,17 @@ over it, and the CLI and the Makefile pass it on."""
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import os
 import subprocess
 
-import numpy as np
 import pytest
 
 from lnnmpc.agents.registry import task_default_overrides
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, TrainConfig
 from lnnmpc.train.recipes import RECIPES, recipe_values
+from lnnmpc.train.report import eval_table
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LEARNING_FIELDS = ("task", "agent", "envs", "obs", "explore_noise_beta", "seed_noise_beta", "seed_steps", "batch_size",
@@ -22,10 +21,8 @@ LEARNING_FIELDS = ("task", "agent", "envs", "obs", "explore_noise_beta", "seed_n
 
 
 def _final_mean(run: str) -> float:
-    with open(os.path.join(run, "eval.csv")) as f:
-        rows = list(csv.DictReader(f))
-    last = max(int(r["env_step"]) for r in rows)
-    return float(np.mean([float(r["return"]) for r in rows if int(r["env_step"]) == last]))
+    """The mean return at the run's last evaluation, as its summary.md reports it (equal episodes per seed)."""
+    return eval_table(runfolder.read_csv(os.path.join(run, "eval.csv")))[-1]["mean"]
 
 
 @pytest.mark.parametrize("name", list(RECIPES))
