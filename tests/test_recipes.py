@@ -63,7 +63,8 @@ def test_cli_trains_from_a_recipe_and_lists_them(tmp_path, capsys):
           "--check"])
     out = capsys.readouterr().out
     assert "cartpole-swingup, cfc-zp-det, 2 seed(s) x 8 env(s), 200,000 env steps, obs novel" in out
-    assert "agent overrides: num_q=2, plan_horizon=3, rollout_steps=3, rollout_stride=3\n" in out
+    assert ("agent overrides: lr_decay_begin=50000, lr_decay_end=100000, lr_final_scale=0.1, num_q=2, plan_horizon=3, "
+            "rollout_steps=3, rollout_stride=3\n") in out
     assert capsys.readouterr().err == ""  # measured on that task and agent: no note
     main(["train", "--recipe", "sparse", "--small", "--task", "cartpole-swingup", "--out", str(run), "--check"])
     out, err = capsys.readouterr()
