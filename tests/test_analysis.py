@@ -84,8 +84,11 @@ def test_evaluation_logs_each_episodes_effective_rank_as_the_analysis_computes_i
     loop = TrainingLoop(agent, env, short, LoopConfig(batch_size=8, replay_capacity=64, eval_episodes=3))
     state, key = agent.init(jax.random.key(3)), jax.random.key(4)
     returns, ranks = (np.asarray(x) for x in quick_jit(loop.evaluate_with_rank)(state, key))
-    rec = rollout(agent, state, short, key, 3)
+    calls = []
+    rec = rollout(agent, state, short, key, 3, progress=lambda done, total: calls.append((done, total)))
     assert rec["latent"].shape == (3, 30, agent.config.model.hidden_size)
+    # progress from inside the compiled scan: agent steps done, rising, through the last of the 30
+    assert calls[-1] == (30, 30) and [d for d, _ in calls] == sorted({d for d, _ in calls}) and len(calls) > 1
     np.testing.assert_allclose(returns, rec["reward"].sum(axis=1), rtol=1e-5)
     np.testing.assert_allclose(ranks, [metrics.effective_rank(z) for z in rec["latent"]], rtol=2e-3)
     assert np.all((ranks >= 1) & (ranks <= agent.config.model.hidden_size))
@@ -214,7 +217,10 @@ def test_cartpole_analysis_reports_every_seed_and_refuses_other_tasks(tmp_path, 
     row = {k: float(rows[0][k]) for k in ("return", *cartpole.STATS)}
     assert 0 <= row["return"] <= 40 and row["turns"] > 0  # an untrained agent moves the pole, rarely up
     assert 0 <= row["sparse_region_share"] <= row["upright_share"] <= 1 and row["mean_abs_cart"] >= 0
-    assert "| seed | return | turns |" in capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "| seed | return | turns |" in out
+    assert "] 40/40 agent steps (2 episode(s) per seed, one seed after another, MJX)" in err  # the progress line
+    assert err.endswith(", done\n")
     other = _config_only_run(tmp_path / "acrobot", "acrobot-swingup")
     assert cartpole.main([other]) == 2
     assert "trained on acrobot-swingup" in capsys.readouterr().err

@@ -31,6 +31,7 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     from lnnmpc.agents.returns import lambda_returns
     from lnnmpc.analysis.rollout import rollout
     from lnnmpc.train.evaluate import load_policy
+    from lnnmpc.train.report import StepProgress
 
     policy = load_policy(run, checkpoint)
     agent = policy.loop.agent
@@ -38,10 +39,12 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     # every head's Q (heads,) and the reward head's prediction () of one (z, a), vmapped over the recorded steps
     heads_and_reward = jax.vmap(lambda params, z, a: (agent._q_values(params, z, a, heads),
                                                       agent._predicted_reward(params, z, a)), in_axes=(None, 0, 0))
-    rows = []
-    for seed in range(policy.config.seeds):
+    rows, seeds = [], policy.config.seeds
+    progress = StepProgress(f"agent steps ({episodes} episode(s) per seed, one seed after another, MJX)")
+    for seed in range(seeds):
         state = policy.seed_state(seed)
-        records = rollout(agent, state, policy.loop.eval_env, jax.random.key(0), episodes)
+        records = rollout(agent, state, policy.loop.eval_env, jax.random.key(0), episodes,
+                          progress=lambda done, total, seed=seed: progress(seed * total + done, seeds * total))
         z, action = records["latent"], records["action"]
         steps_z, steps_a = z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1])  # (E * T, ...)
         q_heads, r_hat = heads_and_reward(state.params, steps_z, steps_a)

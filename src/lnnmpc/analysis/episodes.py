@@ -16,10 +16,11 @@ EpisodeStats = Callable[[np.ndarray], dict[str, np.ndarray]]
 
 
 def seed_rows(run: str, domain: str, episode_stats: EpisodeStats, checkpoint: int | None = None, episodes: int = 4,
-              length: int | None = None) -> list[dict]:
+              length: int | None = None, progress: Callable[[int, int], None] | None = None) -> list[dict]:
     """One row per trained seed of ``run`` (a run of a ``domain`` task): its episodes' mean return and the means
     over ``episodes`` deterministic episodes of ``length`` agent steps (default the task's) of ``episode_stats``
-    (joint positions (E, T, nq) -> name -> (E,)), with ``env_step``. Raises ValueError for a run of another domain."""
+    (joint positions (E, T, nq) -> name -> (E,)), with ``env_step``. ``progress(done, total)``: agent steps over
+    all seeds (played one seed after another). Raises ValueError for a run of another domain."""
     import jax
 
     from lnnmpc.analysis.rollout import rollout
@@ -32,7 +33,10 @@ def seed_rows(run: str, domain: str, episode_stats: EpisodeStats, checkpoint: in
     rows = []
     for seed in range(config.seeds):
         state = policy.seed_state(seed)
-        records = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes, length)
+        report = None if progress is None else (
+            lambda done, total, seed=seed: progress(seed * total + done, config.seeds * total))
+        records = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes, length,
+                          report)
         stats = episode_stats(records["qpos"])
         rows.append({"env_step": policy.checkpoint, "seed": seed, "episodes": episodes,
                      "return": float(records["reward"].sum(axis=1).mean()),
@@ -55,8 +59,11 @@ def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, do
     if args.episodes < 1 or (args.length is not None and args.length < 2):
         print(f"--episodes must be >= 1 and --length >= 2, got {args.episodes} and {args.length}", file=sys.stderr)
         return 2
+    from lnnmpc.train.report import StepProgress
+
+    progress = StepProgress(f"agent steps ({args.episodes} episode(s) per seed, one seed after another, MJX)")
     try:
-        rows = seed_rows(args.run, domain, episode_stats, args.checkpoint, args.episodes, args.length)
+        rows = seed_rows(args.run, domain, episode_stats, args.checkpoint, args.episodes, args.length, progress)
     except (ValueError, FileNotFoundError) as error:
         print(error, file=sys.stderr)
         return 2

@@ -234,6 +234,7 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
     from lnnmpc.analysis.rollout import op_model_functions, rollout
     from lnnmpc.train.checkpoint import all_steps
     from lnnmpc.train.evaluate import load_policy
+    from lnnmpc.train.report import StepProgress
 
     policy = load_policy(run, checkpoint)
     config, agent = policy.config, policy.loop.agent
@@ -242,7 +243,8 @@ def analyse(run: str, *, checkpoint: int | None = None, episodes: int = 10, out:
     out = out or os.path.join(run, "analysis", str(policy.checkpoint))
     os.makedirs(out, exist_ok=True)
     state = policy.seed_state(seed_index)
-    rec = rollout(agent, state, policy.loop.eval_env, jax.random.key(seed), episodes, length)
+    rec = rollout(agent, state, policy.loop.eval_env, jax.random.key(seed), episodes, length,
+                  StepProgress(f"agent steps of {episodes} episode(s), seed {seed_index}, MJX"))
     names = state_names(config.task, rec["clean_obs"].shape[-1])
     masks = phase_masks(config.task, rec["qpos"])
     rows, fits = correlation_rows(rec["latent"], rec["clean_obs"], masks, names, policy.checkpoint, alpha)

@@ -286,7 +286,7 @@ class TrainingLoop:
 
 
 def play_episodes(acting: Any, agent_state: Any, env: envs_lib.Env, key: jax.Array, episodes: int,
-                  steps: int | None = None, record: Any = None) -> tuple[jax.Array, Any]:
+                  steps: int | None = None, record: Any = None, on_step: Any = None) -> tuple[jax.Array, Any]:
     """``episodes`` deterministic episodes (no exploration noise) of ``acting`` (an agent, or one under
     :func:`lnnmpc.agents.actor.with_actor`) with state ``agent_state``, in parallel, for ``steps`` agent steps
     (default the whole episode); episode i's reset and acting keys from ``fold_in(key, i)``
@@ -294,7 +294,8 @@ def play_episodes(acting: Any, agent_state: Any, env: envs_lib.Env, key: jax.Arr
 
     Returns each episode's return (episodes,) and what ``record(state, carry, action, next_state)`` gives at each
     step, stacked time-major (T, episodes, ...) (None without ``record``): ``state`` the environments' states
-    (episodes,) before the step, ``carry`` the acting carries after acting on ``state.obs``."""
+    (episodes,) before the step, ``carry`` the acting carries after acting on ``state.obs``. ``on_step(t)``, where
+    given, is called on the host with each agent step t done (``jax.debug.callback``, unordered: a progress line)."""
     k_reset, k_act = evaluation_keys(key, episodes)
     env_state = jax.vmap(env.reset)(k_reset)
     carries = stacked_initial_carry(acting, episodes)
@@ -304,6 +305,8 @@ def play_episodes(acting: Any, agent_state: Any, env: envs_lib.Env, key: jax.Arr
         act = jax.vmap(lambda c, o, dt, kk, f: acting.act(agent_state, c, o, dt, kk, explore=False, first_step=f))
         action, carry = act(carry, s.obs, s.dt, evaluation_step_keys(k_act, t), s.t == 0)
         nxt = jax.vmap(env.step)(s, action)
+        if on_step is not None:
+            jax.debug.callback(on_step, t)
         return (nxt, carry, total + nxt.reward), (None if record is None else record(s, carry, action, nxt))
 
     (_, _, total), records = jax.lax.scan(body, (env_state, carries, jnp.zeros((episodes,))),
