@@ -21,6 +21,7 @@ import numpy as np
 from lnnmpc.agents.registry import acting_latent
 from lnnmpc.train.evaluate import SameProgram
 from lnnmpc.train.loop import play_episodes
+from lnnmpc.train.step_report import report_step, reporting
 
 
 def rollout_program(agent, env, episodes: int, steps: int | None = None):
@@ -41,21 +42,9 @@ def _rollout_program(pair: SameProgram, episodes: int, steps: int | None):
                     "qpos": s.physics.qpos, "qvel": s.physics.qvel, "action": action, "dt": s.dt,
                     "reward": nxt.reward}
 
-        return play_episodes(agent, state, env, key, episodes, steps, record, on_step=_report_step)[1]
+        return play_episodes(agent, state, env, key, episodes, steps, record, on_step=report_step)[1]
 
     return jax.jit(episodes_from)
-
-
-# Where the compiled rollouts report their agent steps: the programs are cached across calls, so the callback
-# they hold is this module's function, and each call of :func:`rollout` points it at that call's progress.
-_PROGRESS: dict = {"report": None, "done": 0, "total": 0}
-
-
-def _report_step(t) -> None:
-    report, done = _PROGRESS["report"], int(t) + 1
-    if report is not None and done > _PROGRESS["done"]:  # the callbacks are unordered: only forward progress
-        _PROGRESS["done"] = done
-        report(done, _PROGRESS["total"])
 
 
 rollout_program.cache_info = _rollout_program.cache_info
@@ -68,12 +57,8 @@ def rollout(agent, state, env, key: jax.Array, episodes: int, steps: int | None 
     agent steps of the (parallel) episodes get done, from inside the compiled program (e.g.
     :class:`lnnmpc.train.report.StepProgress`)."""
     program = rollout_program(agent, env, episodes, steps)
-    _PROGRESS.update(report=progress, done=0, total=steps or env.episode_length)
-    try:
+    with reporting(progress, steps or env.episode_length):
         records = jax.block_until_ready(program(state, key))
-        jax.effects_barrier()  # every step's callback has run
-    finally:
-        _PROGRESS["report"] = None
     return {name: np.swapaxes(np.asarray(value), 0, 1) for name, value in records.items()}
 
 

@@ -295,7 +295,8 @@ def play_episodes(acting: Any, agent_state: Any, env: envs_lib.Env, key: jax.Arr
     Returns each episode's return (episodes,) and what ``record(state, carry, action, next_state)`` gives at each
     step, stacked time-major (T, episodes, ...) (None without ``record``): ``state`` the environments' states
     (episodes,) before the step, ``carry`` the acting carries after acting on ``state.obs``. ``on_step(t)``, where
-    given, is called on the host with each agent step t done (``jax.debug.callback``, unordered: a progress line)."""
+    given, is called on the host with each agent step t done (``jax.debug.callback``, unordered: a progress line;
+    XLA's persistent cache keeps no program that holds a host callback, so each process compiles such a program)."""
     k_reset, k_act = evaluation_keys(key, episodes)
     env_state = jax.vmap(env.reset)(k_reset)
     carries = stacked_initial_carry(acting, episodes)
