@@ -213,6 +213,12 @@ def test_cartpole_analysis_reports_every_seed_and_refuses_other_tasks(tmp_path, 
     assert cartpole.main([run, "--episodes", "2", "--length", "40"]) == 0
     with open(os.path.join(run, "analysis", "500", "cartpole_episodes.csv")) as f:
         rows = list(csv.DictReader(f))
+    with open(os.path.join(run, "analysis", "500", "cartpole_episodes.png"), "rb") as f:  # the episodes over time
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    cos, cart = cartpole.episode_traces(np.array([[[0.1, 0.0], [-0.3, np.pi]]]))
+    np.testing.assert_allclose(cos.values, [[1.0, -1.0]])
+    np.testing.assert_allclose(cart.values, [[0.1, -0.3]])
+    assert cos.band == (0.995, 1.0) and cart.band == (-0.25, 0.25)
     assert [(r["env_step"], r["seed"], r["episodes"]) for r in rows] == [("500", "0", "2")]
     row = {k: float(rows[0][k]) for k in ("return", *cartpole.STATS)}
     assert 0 <= row["return"] <= 40 and row["turns"] > 0  # an untrained agent moves the pole, rarely up
@@ -257,6 +263,10 @@ def test_acrobot_episode_stats_of_known_trajectories(tmp_path, capsys):
     np.testing.assert_allclose(stats["tip_above_share"], [1, 0, 0.5, 0.5], atol=2e-3)
     np.testing.assert_allclose(stats["mean_tip_distance"][[0, 1, 3]], [0, 4, 2], atol=1e-9)
     np.testing.assert_array_equal(acrobot.longest_stay(np.array([[1, 1, 0, 1, 1, 1, 0], [0] * 7], bool)), [3, 0])
+    height, distance = acrobot.episode_traces(np.stack([upright, hanging, swing_then_balance]))  # the figure's
+    assert height.band == pytest.approx((1.8, 2.2)) and distance.band == pytest.approx((0.0, 0.2))
+    np.testing.assert_allclose(height.values[:, [0, -1]], [[2, 2], [-2, -2], [-2, 2]], atol=1e-12)
+    np.testing.assert_allclose(distance.values[:, [0, -1]], [[0, 0], [4, 4], [4, 0]], atol=1e-12)
     with pytest.raises(ValueError, match=r"\(episodes, steps, 2\) = \[shoulder angle, elbow angle\]"):
         acrobot.episode_stats(np.zeros((5, 2)))
     other = _config_only_run(tmp_path / "cartpole", "cartpole-swingup")

@@ -17,7 +17,9 @@ key for every seed) with each trained seed of an acrobot run and reports what a 
 
 The tip comes from MuJoCo's kinematics of dm_control's acrobot model at each recorded joint position (qpos = 0:
 both links upright, the tip on the target). Writes ``<run>/analysis/<step>/acrobot_episodes.csv`` (or ``--out``;
-one row per seed, means over the episodes) and prints the rows as a markdown table.
+one row per seed, means over the episodes), beside it ``acrobot_episodes.png`` (each seed's episodes over time: the
+tip's height above the shoulder and its distance to the target, the target shaded) and prints the rows as a
+markdown table.
 """
 
 from __future__ import annotations
@@ -77,6 +79,16 @@ def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
             "longest_target_stay": longest_stay(inside) / qpos.shape[1], "mean_tip_distance": distance.mean(axis=1)}
 
 
+def episode_traces(qpos: np.ndarray) -> list[episodes_.Trace]:
+    """The figure's traces of acrobot joint positions ``qpos`` (E, T, 2): the tip's height above the shoulder (the
+    target's band shaded: its centre 2 above the shoulder, ± its radius) and its distance to the target (inside
+    the radius shaded)."""
+    tips, shoulder, target, radius = tip_positions(np.asarray(qpos, dtype=np.float64))
+    top = float(target[2] - shoulder[2])
+    return [episodes_.Trace("tip height above the shoulder", tips[..., 2] - shoulder[2], (top - radius, top + radius)),
+            episodes_.Trace("tip distance to the target", np.linalg.norm(tips - target, axis=-1), (0.0, radius))]
+
+
 def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None) -> list[dict]:
     """One row per trained seed of the acrobot run ``run``: its episodes' mean return and :data:`STATS` (means over
     ``episodes`` deterministic episodes of ``length`` agent steps, default the task's), with ``env_step``."""
@@ -96,7 +108,8 @@ def markdown(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.acrobot", description=__doc__.split("\n")[0],
                                    domain="acrobot", filename="acrobot_episodes.csv", stats=STATS,
-                                   episode_stats=episode_stats, markdown=markdown)
+                                   episode_stats=episode_stats, episode_traces=episode_traces,
+                                   markdown=markdown)
 
 
 if __name__ == "__main__":

@@ -14,8 +14,9 @@ key for every seed) with each trained seed of a cartpole run and reports what a 
 
 A seed stuck without the sparse reward spins the pole through the upright region (several turns, a few per cent of
 its steps in the region); one that balances off centre has many upright steps but fewer in the region. Writes
-``<run>/analysis/<step>/cartpole_episodes.csv`` (or ``--out``; one row per seed, means over the episodes) and
-prints the rows as a markdown table.
+``<run>/analysis/<step>/cartpole_episodes.csv`` (or ``--out``; one row per seed, means over the episodes), beside
+it ``cartpole_episodes.png`` (each seed's episodes over time: the pole's cos θ and the cart position, the sparse
+task's region shaded) and prints the rows as a markdown table.
 """
 
 from __future__ import annotations
@@ -44,6 +45,14 @@ def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
             "sparse_region_share": (upright & centred).mean(axis=1), "mean_abs_cart": np.abs(cart).mean(axis=1)}
 
 
+def episode_traces(qpos: np.ndarray) -> list[episodes_.Trace]:
+    """The figure's traces of cartpole joint positions ``qpos`` (E, T, 2): the pole's cos θ (upright band shaded)
+    and the cart position (the sparse task's ±0.25 shaded)."""
+    qpos = np.asarray(qpos, dtype=np.float64)
+    return [episodes_.Trace("pole cos θ", np.cos(qpos[..., 1]), (UPRIGHT_COSINE_BOUNDS[0], 1.0)),
+            episodes_.Trace("cart position", qpos[..., 0], tuple(CART_BOUNDS))]
+
+
 def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None) -> list[dict]:
     """One row per trained seed of the cartpole run ``run``: its episodes' mean return and :data:`STATS` (means over
     ``episodes`` deterministic episodes of ``length`` agent steps, default the task's), with ``env_step``."""
@@ -61,7 +70,8 @@ def markdown(rows: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.cartpole", description=__doc__.split("\n")[0],
                                    domain="cartpole", filename="cartpole_episodes.csv", stats=STATS,
-                                   episode_stats=episode_stats, markdown=markdown)
+                                   episode_stats=episode_stats, episode_traces=episode_traces,
+                                   markdown=markdown)
 
 
 if __name__ == "__main__":

@@ -1,9 +1,11 @@
 """Per-seed statistics of a trained run's deterministic episodes: what :mod:`lnnmpc.analysis.cartpole` and
-:mod:`lnnmpc.analysis.acrobot` share (the rollout of each seed, the rows, the command line)."""
+:mod:`lnnmpc.analysis.acrobot` share (the rollout of each seed, the rows, the figure of each episode over time, the
+command line)."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -15,12 +17,25 @@ from lnnmpc.train import runfolder
 EpisodeStats = Callable[[np.ndarray], dict[str, np.ndarray]]
 
 
-def seed_rows(run: str, domain: str, episode_stats: EpisodeStats, checkpoint: int | None = None, episodes: int = 4,
-              length: int | None = None, progress: Callable[[int, int], None] | None = None) -> list[dict]:
-    """One row per trained seed of ``run`` (a run of a ``domain`` task): its episodes' mean return and the means
-    over ``episodes`` deterministic episodes of ``length`` agent steps (default the task's) of ``episode_stats``
-    (joint positions (E, T, nq) -> name -> (E,)), with ``env_step``. ``progress(done, total)``: agent steps over
-    all seeds (played one seed after another). Raises ValueError for a run of another domain."""
+@dataclasses.dataclass(frozen=True)
+class Trace:
+    """One quantity of each episode over time, for the figure: ``values`` (E, T); ``band`` (low, high): the region
+    the task rewards, shaded (None: none)."""
+
+    label: str
+    values: np.ndarray
+    band: tuple[float, float] | None = None
+
+
+EpisodeTraces = Callable[[np.ndarray], list[Trace]]
+
+
+def seed_qpos(run: str, domain: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None,
+              progress: Callable[[int, int], None] | None = None) -> tuple[int, list[np.ndarray], list[float]]:
+    """(checkpoint, joint positions (E, T, nq) per trained seed, mean return per seed) of ``episodes``
+    deterministic episodes of ``length`` agent steps (default the task's) with each seed of ``run`` (a run of a
+    ``domain`` task). ``progress(done, total)``: agent steps over all seeds (played one seed after another).
+    Raises ValueError for a run of another domain."""
     import jax
 
     from lnnmpc.analysis.rollout import rollout
@@ -30,25 +45,69 @@ def seed_rows(run: str, domain: str, episode_stats: EpisodeStats, checkpoint: in
     if not config.task.startswith(domain):
         raise ValueError(f"{run} trained on {config.task}: this analysis reads {domain}'s joints")
     policy = load_policy(run, checkpoint)
-    rows = []
+    qpos, returns = [], []
     for seed in range(config.seeds):
-        state = policy.seed_state(seed)
         report = None if progress is None else (
             lambda done, total, seed=seed: progress(seed * total + done, config.seeds * total))
-        records = rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes, length,
-                          report)
-        stats = episode_stats(records["qpos"])
-        rows.append({"env_step": policy.checkpoint, "seed": seed, "episodes": episodes,
-                     "return": float(records["reward"].sum(axis=1).mean()),
-                     **{name: float(values.mean()) for name, values in stats.items()}})
-    return rows
+        records = rollout(policy.loop.agent, policy.seed_state(seed), policy.loop.eval_env, jax.random.key(0),
+                          episodes, length, report)
+        qpos.append(records["qpos"])
+        returns.append(float(records["reward"].sum(axis=1).mean()))
+    return policy.checkpoint, qpos, returns
+
+
+def rows_of(checkpoint: int, qpos: list[np.ndarray], returns: list[float], episode_stats: EpisodeStats) -> list[dict]:
+    """One row per seed: ``env_step``, ``seed``, ``episodes``, the mean ``return`` and the means over the episodes of
+    ``episode_stats`` (joint positions (E, T, nq) -> name -> (E,))."""
+    return [{"env_step": checkpoint, "seed": seed, "episodes": len(q), "return": ret,
+             **{name: float(values.mean()) for name, values in episode_stats(q).items()}}
+            for seed, (q, ret) in enumerate(zip(qpos, returns, strict=True))]
+
+
+def seed_rows(run: str, domain: str, episode_stats: EpisodeStats, checkpoint: int | None = None, episodes: int = 4,
+              length: int | None = None, progress: Callable[[int, int], None] | None = None) -> list[dict]:
+    """One row per trained seed of ``run`` (:func:`seed_qpos`, :func:`rows_of`). Raises ValueError for a run of
+    another domain."""
+    return rows_of(*seed_qpos(run, domain, checkpoint, episodes, length, progress), episode_stats)
+
+
+def plot_traces(path: str, traces: list[list[Trace]], title: str) -> None:
+    """A figure of each seed's episodes over time: one column per seed, one row per :class:`Trace` (its episodes
+    as thin lines, the rewarded band shaded); ``traces[seed]`` the seed's traces."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows, cols = len(traces[0]), len(traces)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.4 * rows), squeeze=False, sharex=True,
+                             sharey="row")
+    for seed, seed_traces in enumerate(traces):
+        for row, trace in enumerate(seed_traces):
+            ax = axes[row, seed]
+            if trace.band is not None:
+                ax.axhspan(*trace.band, color="tab:green", alpha=0.15, lw=0)
+            ax.plot(np.asarray(trace.values).T, lw=0.7, alpha=0.8)
+            ax.grid(alpha=0.3)
+            if seed == 0:
+                ax.set_ylabel(trace.label, fontsize=8)
+            if row == 0:
+                ax.set_title(f"seed {seed}", fontsize=9)
+            if row == rows - 1:
+                ax.set_xlabel("agent step", fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, domain: str, filename: str,
-                  stats: Sequence[str], episode_stats: EpisodeStats, markdown: Callable[[list[dict]], str]) -> int:
+                  stats: Sequence[str], episode_stats: EpisodeStats, episode_traces: EpisodeTraces,
+                  markdown: Callable[[list[dict]], str]) -> int:
     """The command line of a per-seed episode analysis: ``RUN [--checkpoint STEP] [--episodes 4] [--length T]
-    [--out FOLDER]``; writes ``<out>/<filename>`` (default out ``<run>/analysis/<step>``), prints ``markdown``.
-    Returns 0, or 2 (with the reason on stderr) for bad arguments or a run of another domain."""
+    [--out FOLDER]``; writes ``<out>/<filename>`` and beside it the figure of ``episode_traces`` (the same name,
+    ``.png``; default out ``<run>/analysis/<step>``), prints ``markdown``. Returns 0, or 2 (with the reason on
+    stderr) for bad arguments or a run of another domain."""
     p = argparse.ArgumentParser(prog=prog, description=description)
     p.add_argument("run", help=f"run folder of a {domain} task")
     p.add_argument("--checkpoint", type=int, default=None, help="env step of the checkpoint (default: the newest)")
@@ -63,14 +122,20 @@ def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, do
 
     progress = StepProgress(f"agent steps ({args.episodes} episode(s) per seed, one seed after another, MJX)")
     try:
-        rows = seed_rows(args.run, domain, episode_stats, args.checkpoint, args.episodes, args.length, progress)
+        checkpoint, qpos, returns = seed_qpos(args.run, domain, args.checkpoint, args.episodes, args.length, progress)
     except (ValueError, FileNotFoundError) as error:
         print(error, file=sys.stderr)
         return 2
-    out = args.out or os.path.join(args.run, "analysis", str(rows[0]["env_step"]))
+    rows = rows_of(checkpoint, qpos, returns, episode_stats)
+    out = args.out or os.path.join(args.run, "analysis", str(checkpoint))
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, filename)
     runfolder.write_csv(path, ["env_step", "seed", "episodes", "return", *stats], rows)
+    figure = os.path.splitext(path)[0] + ".png"
+    config = runfolder.saved_config(args.run)
+    plot_traces(figure, [episode_traces(q) for q in qpos],
+                f"{config.task} {config.agent} at {checkpoint:,} env steps: {args.episodes} deterministic episode(s) "
+                "per seed (rewarded region shaded)")
     print(markdown(rows))
-    print(f"-> {path}")
+    print(f"-> {path}, {figure}")
     return 0
