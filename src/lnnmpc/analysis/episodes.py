@@ -80,8 +80,8 @@ def plot_traces(path: str, traces: list[list[Trace]], title: str) -> None:
     import matplotlib.pyplot as plt
 
     rows, cols = len(traces[0]), len(traces)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.4 * rows), squeeze=False, sharex=True,
-                             sharey="row")
+    fig, axes = plt.subplots(rows, cols, figsize=(max(3.6 * cols, 5.0), 2.4 * rows + 0.4), squeeze=False,
+                             sharex=True, sharey="row")
     for seed, seed_traces in enumerate(traces):
         for row, trace in enumerate(seed_traces):
             ax = axes[row, seed]
@@ -134,8 +134,8 @@ def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, do
     figure = os.path.splitext(path)[0] + ".png"
     config = runfolder.saved_config(args.run)
     plot_traces(figure, [episode_traces(q) for q in qpos],
-                f"{config.task} {config.agent} at {checkpoint:,} env steps: {args.episodes} deterministic episode(s) "
-                "per seed (rewarded region shaded)")
+                f"{config.task} {config.agent} at {checkpoint:,} env steps\n{args.episodes} deterministic "
+                "episode(s) per seed, the rewarded region shaded")
     print(markdown(rows))
     print(f"-> {path}, {figure}")
     return 0
