@@ -102,12 +102,12 @@ def plot_traces(path: str, traces: list[list[Trace]], title: str) -> None:
 
 
 def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, domain: str, filename: str,
-                  stats: Sequence[str], episode_stats: EpisodeStats, episode_traces: EpisodeTraces,
+                  stats: Sequence[str], episode_stats: EpisodeStats, episode_traces: EpisodeTraces, shaded: str,
                   markdown: Callable[[list[dict]], str]) -> int:
     """The command line of a per-seed episode analysis: ``RUN [--checkpoint STEP] [--episodes 4] [--length T]
     [--out FOLDER]``; writes ``<out>/<filename>`` and beside it the figure of ``episode_traces`` (the same name,
-    ``.png``; default out ``<run>/analysis/<step>``), prints ``markdown``. Returns 0, or 2 (with the reason on
-    stderr) for bad arguments or a run of another domain."""
+    ``.png``, its title naming the ``shaded`` bands; default out ``<run>/analysis/<step>``), prints ``markdown``.
+    Returns 0, or 2 (with the reason on stderr) for bad arguments or a run of another domain."""
     p = argparse.ArgumentParser(prog=prog, description=description)
     p.add_argument("run", help=f"run folder of a {domain} task")
     p.add_argument("--checkpoint", type=int, default=None, help="env step of the checkpoint (default: the newest)")
@@ -135,7 +135,7 @@ def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, do
     config = runfolder.saved_config(args.run)
     plot_traces(figure, [episode_traces(q) for q in qpos],
                 f"{config.task} {config.agent} at {checkpoint:,} env steps\n{args.episodes} deterministic "
-                "episode(s) per seed, the rewarded region shaded")
+                f"episode(s) per seed; shaded: {shaded}")
     print(markdown(rows))
     print(f"-> {path}, {figure}")
     return 0
