@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.acrobot", description=__doc__.split("\n")[0],
                                    domain="acrobot", filename="acrobot_episodes.csv", stats=STATS,
                                    episode_stats=episode_stats, episode_traces=episode_traces,
-                                   shaded="the target (the tip within its radius)", markdown=markdown)
+                                   shaded="the target", markdown=markdown)
 
 
 if __name__ == "__main__":

@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
     return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.cartpole", description=__doc__.split("\n")[0],
                                    domain="cartpole", filename="cartpole_episodes.csv", stats=STATS,
                                    episode_stats=episode_stats, episode_traces=episode_traces,
-                                   shaded="the sparse task's region (upright, |cart| < 0.25)", markdown=markdown)
+                                   shaded="the sparse task's region", markdown=markdown)
 
 
 if __name__ == "__main__":

@@ -95,7 +95,7 @@ def plot_traces(path: str, traces: list[list[Trace]], title: str) -> None:
                 ax.set_title(f"seed {seed}", fontsize=9)
             if row == rows - 1:
                 ax.set_xlabel("agent step", fontsize=8)
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title, fontsize=10, wrap=True)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
