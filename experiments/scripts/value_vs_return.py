@@ -29,9 +29,8 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     import jax.numpy as jnp
 
     from lnnmpc.agents.returns import lambda_returns
-    from lnnmpc.analysis.rollout import rollout
+    from lnnmpc.analysis.episodes import seed_rollouts, seeds_progress
     from lnnmpc.train.evaluate import load_policy
-    from lnnmpc.train.report import StepProgress
 
     policy = load_policy(run, checkpoint)
     agent = policy.loop.agent
@@ -39,12 +38,8 @@ def seed_rows(run: str, checkpoint: int | None, episodes: int, steps: int) -> li
     # every head's Q (heads,) and the reward head's prediction () of one (z, a), vmapped over the recorded steps
     heads_and_reward = jax.vmap(lambda params, z, a: (agent._q_values(params, z, a, heads),
                                                       agent._predicted_reward(params, z, a)), in_axes=(None, 0, 0))
-    rows, seeds = [], policy.config.seeds
-    progress = StepProgress(f"agent steps ({episodes} episode(s) per seed, one seed after another, MJX)")
-    for seed in range(seeds):
-        state = policy.seed_state(seed)
-        records = rollout(agent, state, policy.loop.eval_env, jax.random.key(0), episodes,
-                          progress=lambda done, total, seed=seed: progress(seed * total + done, seeds * total))
+    rows = []
+    for seed, state, records in seed_rollouts(policy, episodes, progress=seeds_progress(episodes)):
         z, action = records["latent"], records["action"]
         steps_z, steps_a = z.reshape(-1, z.shape[-1]), action.reshape(-1, action.shape[-1])  # (E * T, ...)
         q_heads, r_hat = heads_and_reward(state.params, steps_z, steps_a)
@@ -77,19 +72,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"--episodes and --steps must be >= 1, got {args.episodes} and {args.steps}", file=sys.stderr)
         return 2
     rows = seed_rows(args.run, args.checkpoint, args.episodes, args.steps)
+    from lnnmpc.analysis.episodes import SEED_COLUMNS, markdown_table
     from lnnmpc.train import runfolder
 
     out = args.out or os.path.join(args.run, "analysis", str(rows[0]["env_step"]))
     os.makedirs(out, exist_ok=True)
     fields = list(rows[0])
     runfolder.write_csv(os.path.join(out, "value_vs_return.csv"), fields, rows)
-    print("| seed | return | Q(z_t, a_t) | G_t | Q - G | Q at t = 0 | G at t = 0 | heads' spread | predicted reward | "
-          "reward |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for r in rows:
-        print(f"| {r['seed']} | {r['return']:.1f} | {r['q_mean']:.1f} | {r['g_mean']:.1f} | {r['q_minus_g']:+.1f} | "
-              f"{r['q_start']:.1f} | {r['g_start']:.1f} | {r['q_head_spread']:.1f} | {r['reward_hat_mean']:.3f} | "
-              f"{r['reward_mean']:.3f} |")
+    print(markdown_table(rows, (*SEED_COLUMNS, ("Q(z_t, a_t)", "q_mean", ".1f"), ("G_t", "g_mean", ".1f"),
+                                ("Q - G", "q_minus_g", "+.1f"), ("Q at t = 0", "q_start", ".1f"),
+                                ("G at t = 0", "g_start", ".1f"), ("heads' spread", "q_head_spread", ".1f"),
+                                ("predicted reward", "reward_hat_mean", ".3f"), ("reward", "reward_mean", ".3f"))))
     return 0
 
 

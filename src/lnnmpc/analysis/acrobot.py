@@ -30,8 +30,11 @@ import numpy as np
 
 from lnnmpc.analysis import episodes as episodes_
 
-STATS = ("shoulder_turns", "elbow_turns", "tip_above_share", "target_share", "longest_target_stay",
-         "mean_tip_distance")
+COLUMNS: tuple[episodes_.Column, ...] = (
+    ("shoulder turns", "shoulder_turns", ".1f"), ("elbow turns", "elbow_turns", ".1f"),
+    ("tip above shoulder", "tip_above_share", ".3f"), ("in target", "target_share", ".3f"),
+    ("longest stay in target", "longest_target_stay", ".3f"), ("mean tip distance", "mean_tip_distance", ".2f"))
+STATS = tuple(key for _, key, _ in COLUMNS)
 
 
 def tip_positions(qpos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -89,27 +92,10 @@ def episode_traces(qpos: np.ndarray) -> list[episodes_.Trace]:
             episodes_.Trace("tip distance to the target", np.linalg.norm(tips - target, axis=-1), (0.0, radius))]
 
 
-def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None) -> list[dict]:
-    """One row per trained seed of the acrobot run ``run``: its episodes' mean return and :data:`STATS` (means over
-    ``episodes`` deterministic episodes of ``length`` agent steps, default the task's), with ``env_step``."""
-    return episodes_.seed_rows(run, "acrobot", episode_stats, checkpoint, episodes, length)
-
-
-def markdown(rows: list[dict]) -> str:
-    head = ("| seed | return | shoulder turns | elbow turns | tip above shoulder | in target | longest stay in target "
-            "| mean tip distance |")
-    lines = [head, "|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['seed']} | {r['return']:.1f} | {r['shoulder_turns']:.1f} | {r['elbow_turns']:.1f} | "
-              f"{r['tip_above_share']:.3f} | {r['target_share']:.3f} | {r['longest_target_stay']:.3f} | "
-              f"{r['mean_tip_distance']:.2f} |" for r in rows]
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> int:
     return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.acrobot", description=__doc__.split("\n")[0],
-                                   domain="acrobot", filename="acrobot_episodes.csv", stats=STATS,
-                                   episode_stats=episode_stats, episode_traces=episode_traces,
-                                   shaded="the target", markdown=markdown)
+                                   domain="acrobot", filename="acrobot_episodes.csv", columns=COLUMNS,
+                                   episode_stats=episode_stats, episode_traces=episode_traces, shaded="the target")
 
 
 if __name__ == "__main__":

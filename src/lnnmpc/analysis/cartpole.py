@@ -28,7 +28,10 @@ import numpy as np
 from lnnmpc.analysis import episodes as episodes_
 from lnnmpc.envs.tasks import CART_BOUNDS, UPRIGHT_COSINE_BOUNDS
 
-STATS = ("turns", "upright_share", "sparse_region_share", "mean_abs_cart")
+COLUMNS: tuple[episodes_.Column, ...] = (
+    ("turns", "turns", ".1f"), ("upright share", "upright_share", ".3f"),
+    ("sparse region share", "sparse_region_share", ".3f"), ("mean abs cart", "mean_abs_cart", ".2f"))
+STATS = tuple(key for _, key, _ in COLUMNS)
 
 
 def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
@@ -53,25 +56,11 @@ def episode_traces(qpos: np.ndarray) -> list[episodes_.Trace]:
             episodes_.Trace("cart position", qpos[..., 0], tuple(CART_BOUNDS))]
 
 
-def seed_rows(run: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None) -> list[dict]:
-    """One row per trained seed of the cartpole run ``run``: its episodes' mean return and :data:`STATS` (means over
-    ``episodes`` deterministic episodes of ``length`` agent steps, default the task's), with ``env_step``."""
-    return episodes_.seed_rows(run, "cartpole", episode_stats, checkpoint, episodes, length)
-
-
-def markdown(rows: list[dict]) -> str:
-    head = "| seed | return | turns | upright share | sparse region share | mean abs cart |"
-    lines = [head, "|---:|---:|---:|---:|---:|---:|"]
-    lines += [f"| {r['seed']} | {r['return']:.1f} | {r['turns']:.1f} | {r['upright_share']:.3f} | "
-              f"{r['sparse_region_share']:.3f} | {r['mean_abs_cart']:.2f} |" for r in rows]
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> int:
     return episodes_.analysis_main(argv, prog="python -m lnnmpc.analysis.cartpole", description=__doc__.split("\n")[0],
-                                   domain="cartpole", filename="cartpole_episodes.csv", stats=STATS,
+                                   domain="cartpole", filename="cartpole_episodes.csv", columns=COLUMNS,
                                    episode_stats=episode_stats, episode_traces=episode_traces,
-                                   shaded="the sparse task's region", markdown=markdown)
+                                   shaded="the sparse task's region")
 
 
 if __name__ == "__main__":

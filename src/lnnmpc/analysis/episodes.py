@@ -8,7 +8,8 @@ import argparse
 import dataclasses
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -30,30 +31,34 @@ class Trace:
 EpisodeTraces = Callable[[np.ndarray], list[Trace]]
 
 
-def seed_qpos(run: str, domain: str, checkpoint: int | None = None, episodes: int = 4, length: int | None = None,
-              progress: Callable[[int, int], None] | None = None) -> tuple[int, list[np.ndarray], list[float]]:
-    """(checkpoint, joint positions (E, T, nq) per trained seed, mean return per seed) of ``episodes``
-    deterministic episodes of ``length`` agent steps (default the task's) with each seed of ``run`` (a run of a
-    ``domain`` task). ``progress(done, total)``: agent steps over all seeds (played one seed after another).
-    Raises ValueError for a run of another domain."""
+Column = tuple[str, str, str]  # (header, row key, format spec) of a markdown table
+SEED_COLUMNS: tuple[Column, ...] = (("seed", "seed", ""), ("return", "return", ".1f"))
+
+
+def seeds_progress(episodes: int):
+    """The progress line of :func:`seed_rollouts` over a run's seeds (:class:`lnnmpc.train.report.StepProgress`)."""
+    from lnnmpc.train.report import StepProgress
+
+    return StepProgress(f"agent steps ({episodes} episode(s) per seed, one seed after another, MJX)")
+
+
+def seed_rollouts(policy, episodes: int, length: int | None = None,
+                  progress: Callable[[int, int], None] | None = None) -> Iterator[tuple[int, Any, dict]]:
+    """Yields (seed, agent state, :func:`lnnmpc.analysis.rollout.rollout`'s records) for each trained seed of a
+    loaded ``policy`` (:func:`lnnmpc.train.evaluate.load_policy`): ``episodes`` deterministic episodes of ``length``
+    agent steps (default the task's), the same key for every seed, one seed after another; ``progress(done,
+    total)``: agent steps over all seeds."""
     import jax
 
     from lnnmpc.analysis.rollout import rollout
-    from lnnmpc.train.evaluate import load_policy
 
-    config = runfolder.saved_config(run)
-    if not config.task.startswith(domain):
-        raise ValueError(f"{run} trained on {config.task}: this analysis reads {domain}'s joints")
-    policy = load_policy(run, checkpoint)
-    qpos, returns = [], []
-    for seed in range(config.seeds):
+    seeds = policy.config.seeds
+    for seed in range(seeds):
+        state = policy.seed_state(seed)
         report = None if progress is None else (
-            lambda done, total, seed=seed: progress(seed * total + done, config.seeds * total))
-        records = rollout(policy.loop.agent, policy.seed_state(seed), policy.loop.eval_env, jax.random.key(0),
-                          episodes, length, report)
-        qpos.append(records["qpos"])
-        returns.append(float(records["reward"].sum(axis=1).mean()))
-    return policy.checkpoint, qpos, returns
+            lambda done, total, seed=seed: progress(seed * total + done, seeds * total))
+        yield seed, state, rollout(policy.loop.agent, state, policy.loop.eval_env, jax.random.key(0), episodes,
+                                   length, report)
 
 
 def rows_of(checkpoint: int, qpos: list[np.ndarray], returns: list[float], episode_stats: EpisodeStats) -> list[dict]:
@@ -64,11 +69,11 @@ def rows_of(checkpoint: int, qpos: list[np.ndarray], returns: list[float], episo
             for seed, (q, ret) in enumerate(zip(qpos, returns, strict=True))]
 
 
-def seed_rows(run: str, domain: str, episode_stats: EpisodeStats, checkpoint: int | None = None, episodes: int = 4,
-              length: int | None = None, progress: Callable[[int, int], None] | None = None) -> list[dict]:
-    """One row per trained seed of ``run`` (:func:`seed_qpos`, :func:`rows_of`). Raises ValueError for a run of
-    another domain."""
-    return rows_of(*seed_qpos(run, domain, checkpoint, episodes, length, progress), episode_stats)
+def markdown_table(rows: list[dict], columns: Sequence[Column]) -> str:
+    """``rows`` as a markdown table of ``columns`` (header, key, format spec), all right-aligned."""
+    lines = ["| " + " | ".join(header for header, _, _ in columns) + " |", "|" + "---:|" * len(columns)]
+    lines += ["| " + " | ".join(f"{row[key]:{spec}}" for _, key, spec in columns) + " |" for row in rows]
+    return "\n".join(lines)
 
 
 def plot_traces(path: str, traces: list[list[Trace]], title: str) -> None:
@@ -102,12 +107,14 @@ def plot_traces(path: str, traces: list[list[Trace]], title: str) -> None:
 
 
 def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, domain: str, filename: str,
-                  stats: Sequence[str], episode_stats: EpisodeStats, episode_traces: EpisodeTraces, shaded: str,
-                  markdown: Callable[[list[dict]], str]) -> int:
+                  columns: Sequence[Column], episode_stats: EpisodeStats, episode_traces: EpisodeTraces,
+                  shaded: str) -> int:
     """The command line of a per-seed episode analysis: ``RUN [--checkpoint STEP] [--episodes 4] [--length T]
-    [--out FOLDER]``; writes ``<out>/<filename>`` and beside it the figure of ``episode_traces`` (the same name,
-    ``.png``, its title naming the ``shaded`` bands; default out ``<run>/analysis/<step>``), prints ``markdown``.
-    Returns 0, or 2 (with the reason on stderr) for bad arguments or a run of another domain."""
+    [--out FOLDER]``; writes ``<out>/<filename>`` (the rows of :func:`rows_of`, ``episode_stats``' keys as the
+    ``columns`` name them) and beside it the figure of ``episode_traces`` (the same name, ``.png``, its title naming
+    the ``shaded`` bands; default out ``<run>/analysis/<step>``), prints the rows as a markdown table of the seed,
+    its return and ``columns``. Returns 0, or 2 (with the reason on stderr) for bad arguments or a run of another
+    domain."""
     p = argparse.ArgumentParser(prog=prog, description=description)
     p.add_argument("run", help=f"run folder of a {domain} task")
     p.add_argument("--checkpoint", type=int, default=None, help="env step of the checkpoint (default: the newest)")
@@ -118,24 +125,29 @@ def analysis_main(argv: Sequence[str] | None, *, prog: str, description: str, do
     if args.episodes < 1 or (args.length is not None and args.length < 2):
         print(f"--episodes must be >= 1 and --length >= 2, got {args.episodes} and {args.length}", file=sys.stderr)
         return 2
-    from lnnmpc.train.report import StepProgress
+    from lnnmpc.train.evaluate import load_policy
 
-    progress = StepProgress(f"agent steps ({args.episodes} episode(s) per seed, one seed after another, MJX)")
     try:
-        checkpoint, qpos, returns = seed_qpos(args.run, domain, args.checkpoint, args.episodes, args.length, progress)
+        task = runfolder.saved_config(args.run).task
+        if not task.startswith(domain):
+            raise ValueError(f"{args.run} trained on {task}: this analysis reads {domain}'s joints")
+        policy = load_policy(args.run, args.checkpoint)
     except (ValueError, FileNotFoundError) as error:
         print(error, file=sys.stderr)
         return 2
-    rows = rows_of(checkpoint, qpos, returns, episode_stats)
-    out = args.out or os.path.join(args.run, "analysis", str(checkpoint))
+    qpos, returns = [], []
+    for _, _, records in seed_rollouts(policy, args.episodes, args.length, seeds_progress(args.episodes)):
+        qpos.append(records["qpos"])
+        returns.append(float(records["reward"].sum(axis=1).mean()))
+    rows = rows_of(policy.checkpoint, qpos, returns, episode_stats)
+    out = args.out or os.path.join(args.run, "analysis", str(policy.checkpoint))
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, filename)
-    runfolder.write_csv(path, ["env_step", "seed", "episodes", "return", *stats], rows)
+    runfolder.write_csv(path, ["env_step", "seed", "episodes", "return", *(key for _, key, _ in columns)], rows)
     figure = os.path.splitext(path)[0] + ".png"
-    config = runfolder.saved_config(args.run)
     plot_traces(figure, [episode_traces(q) for q in qpos],
-                f"{config.task} {config.agent} at {checkpoint:,} env steps\n{args.episodes} deterministic "
+                f"{task} {policy.config.agent} at {policy.checkpoint:,} env steps\n{args.episodes} deterministic "
                 f"episode(s) per seed; shaded: {shaded}")
-    print(markdown(rows))
+    print(markdown_table(rows, (*SEED_COLUMNS, *columns)))
     print(f"-> {path}, {figure}")
     return 0
