@@ -69,6 +69,7 @@ def _text(value: Any) -> str:
 
 
 _RESULTS = "experiments/results"
+_BATCH71 = f"{_RESULTS}/cfc-cartpole-nv-recipe-lrdecay-seed0-sparse-lambda0-lrdecay-seed3-h200-200k"
 
 RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
     Recipe(
@@ -76,11 +77,13 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
         train={"envs": 8, "explore_noise_beta": 1.0, "seed_noise_beta": 1.0, "seed_steps": 20_000},
         overrides={"lambda_": 0, "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1},
         measured=("799.3 ± 14.6 at 200K over 3 seeds (one per master seed 0, 1, 2; 804.8 / 811.2 / 781.9), "
-                  "RESULTS.md [69]; the thesis's cfc-op-det 799.5. Pink noise in the seed phase and in exploration "
+                  "RESULTS.md [69]; master seed 3: 793.3 (435.3 at 170K), 797.8 over the four [71]; the "
+                  "thesis's cfc-op-det 799.5. Pink noise in the seed phase and in exploration "
                   "finds the sparse reward on every seed ([54]-[56]); one-step TD targets and the learning rate "
                   "decayed to 0.1 x over updates 50K-100K lift the plateau from ~730 ([67]-[69])."),
-        runs=tuple(f"{_RESULTS}/cfc-op-det-sparse-lambda0-lrdecay-h200/op-sparse-lambda0-lrdecay-seed{seed}"
-                   for seed in range(3))),
+        runs=(*(f"{_RESULTS}/cfc-op-det-sparse-lambda0-lrdecay-h200/op-sparse-lambda0-lrdecay-seed{seed}"
+                for seed in range(3)),
+              f"{_BATCH71}/op-sparse-lambda0-lrdecay-seed3")),
     Recipe(
         name="remove-vel", task="cartpole-swingup", agent="cfc-zp-det",
         train={"envs": 8, "obs": {"remove_vel": True}},
@@ -90,10 +93,11 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                   "852.6 / 829.9; no episode under 825 at the end), RESULTS.md [70]; the thesis's best 868, TD-MPC2 "
                   "193. Model losses 3 steps deep, planning over 3, 5 Q heads ([30]), and the learning rate decayed "
                   "to 0.1 x over updates 50K-100K: without the decay the same master seed lost a seed late (635.9 "
-                  "at 212,592, [31]), master seeds 0 / 2 reached 806.5 / 819.5 ([30], [32]); the decay is not yet "
-                  "run on those two."),
+                  "at 212,592, [31]). Master seed 0: 845.1 ± 1.3 at 200,128 with the decay (806.5 without, [30]) "
+                  "[71]; master seed 2 reached 819.5 without it ([32])."),
         runs=(f"{_RESULTS}/cfc-cartpole-nv-recipe-lrdecay-seed1-acrobot-recipe-seed3-h200-200k/"
-              "cp-nv-recipe-lrdecay-seed1",)),
+              "cp-nv-recipe-lrdecay-seed1",
+              f"{_BATCH71}/cp-nv-recipe-lrdecay-seed0")),
     Recipe(
         name="acrobot", task="acrobot-swingup", agent="cfc-zp-det",
         train={"envs": 16, "explore_noise_beta": 1.0},
