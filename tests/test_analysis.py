@@ -262,6 +262,8 @@ def test_acrobot_episode_stats_of_known_trajectories(tmp_path, capsys):
     np.testing.assert_allclose(stats["longest_target_stay"], [1, 0, arc / 3, 0.5], atol=2e-3)  # one pass a turn
     np.testing.assert_allclose(stats["tip_above_share"], [1, 0, 0.5, 0.5], atol=2e-3)
     np.testing.assert_allclose(stats["mean_tip_distance"][[0, 1, 3]], [0, 4, 2], atol=1e-9)
+    # eq. 4.6 pays hanging as upright; over a whirl's turns 0.5 |cos| averages 1 / π, the still elbow adds 0.5
+    np.testing.assert_allclose(stats["thesis_reward_mean"], [1, 1, 0.5 + 1 / np.pi, 1], atol=2e-3)
     np.testing.assert_array_equal(acrobot.longest_stay(np.array([[1, 1, 0, 1, 1, 1, 0], [0] * 7], bool)), [3, 0])
     height, distance = acrobot.episode_traces(np.stack([upright, hanging, swing_then_balance]))  # the figure's
     assert height.band == pytest.approx((1.8, 2.2)) and distance.band == pytest.approx((0.0, 0.2))

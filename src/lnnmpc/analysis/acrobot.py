@@ -13,7 +13,10 @@ key for every seed) with each trained seed of an acrobot run and reports what a 
   pays and acrobot-swingup pays fully;
 * ``longest_target_stay``: the longest run of consecutive agent steps in the target, as a share of the episode:
   balancing shows as one long stay, whirling as many short passes;
-* ``mean_tip_distance``: the mean distance of the tip from the target.
+* ``mean_tip_distance``: the mean distance of the tip from the target;
+* ``thesis_reward_mean``: the mean per agent step of the thesis's acrobot reward (its eq. 4.6,
+  :func:`lnnmpc.analysis.thesis_acrobot.thesis_reward`), which pays a hanging chain as fully as an upright one;
+  x 1000 it estimates the episode's return under that reward (no torque at all: ~0.79).
 
 The tip comes from MuJoCo's kinematics of dm_control's acrobot model at each recorded joint position (qpos = 0:
 both links upright, the tip on the target). Writes ``<run>/analysis/<step>/acrobot_episodes.csv`` (or ``--out``;
@@ -29,11 +32,13 @@ import sys
 import numpy as np
 
 from lnnmpc.analysis import episodes as episodes_
+from lnnmpc.analysis.thesis_acrobot import thesis_reward
 
 COLUMNS: tuple[episodes_.Column, ...] = (
     ("shoulder turns", "shoulder_turns", ".1f"), ("elbow turns", "elbow_turns", ".1f"),
     ("tip above shoulder", "tip_above_share", ".3f"), ("in target", "target_share", ".3f"),
-    ("longest stay in target", "longest_target_stay", ".3f"), ("mean tip distance", "mean_tip_distance", ".2f"))
+    ("longest stay in target", "longest_target_stay", ".3f"), ("mean tip distance", "mean_tip_distance", ".2f"),
+    ("eq. 4.6 reward per step", "thesis_reward_mean", ".3f"))
 STATS = tuple(key for _, key, _ in COLUMNS)
 
 
@@ -79,7 +84,8 @@ def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
     inside = distance <= radius
     return {"shoulder_turns": turns[:, 0], "elbow_turns": turns[:, 1],
             "tip_above_share": (tips[..., 2] > shoulder[2]).mean(axis=1), "target_share": inside.mean(axis=1),
-            "longest_target_stay": longest_stay(inside) / qpos.shape[1], "mean_tip_distance": distance.mean(axis=1)}
+            "longest_target_stay": longest_stay(inside) / qpos.shape[1], "mean_tip_distance": distance.mean(axis=1),
+            "thesis_reward_mean": thesis_reward(qpos[..., 0], qpos[..., 1]).mean(axis=1)}
 
 
 def episode_traces(qpos: np.ndarray) -> list[episodes_.Trace]:
