@@ -87,3 +87,6 @@ def test_cli_writes_one_row_per_controller_and_episode_and_names_bad_controllers
     with pytest.raises(SystemExit):
         thesis_acrobot.main(["--episodes", "0", "--out", str(tmp_path / "x.csv")])
     assert "episodes=0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):  # past dm_control's episode the environment would restart
+        thesis_acrobot.main(["--steps", "1001", "--out", str(tmp_path / "x.csv")])
+    assert "steps in 1..1000 (dm_control's episode), got episodes=10, steps=1001" in capsys.readouterr().err

@@ -60,9 +60,10 @@ def controllers(seed: int) -> dict[str, Controller]:
 
 
 CONTROLLERS = tuple(controllers(0))
+EPISODE_STEPS = 1000  # dm_control's acrobot-swingup episode, in control steps
 
 
-def play(controller: Controller, episode: int, steps: int = 1000) -> tuple[float, float]:
+def play(controller: Controller, episode: int, steps: int = EPISODE_STEPS) -> tuple[float, float]:
     """One dm_control acrobot-swingup episode of ``steps`` control steps (initial state ``random=episode``) under
     ``controller``: (dm_control's return, the return under :func:`thesis_reward` of each step's resulting angles)."""
     from dm_control import suite
@@ -78,15 +79,16 @@ def play(controller: Controller, episode: int, steps: int = 1000) -> tuple[float
     return dm_return, thesis_return
 
 
-def score(names: Sequence[str], episodes: int, steps: int = 1000,
+def score(names: Sequence[str], episodes: int, steps: int = EPISODE_STEPS,
           progress: Callable[[int, int], None] | None = None) -> list[dict]:
     """Rows {controller, episode, dm_control_return, thesis_return} for each controller in ``names`` and episode
     0..``episodes``-1; ``progress(done, total)`` after each episode."""
     unknown = sorted(set(names) - set(CONTROLLERS))
     if unknown:
         raise ValueError(f"unknown controller(s) {unknown}; known: {list(CONTROLLERS)}")
-    if episodes < 1 or steps < 1:
-        raise ValueError(f"episodes and steps must be >= 1, got episodes={episodes}, steps={steps}")
+    if episodes < 1 or not 1 <= steps <= EPISODE_STEPS:
+        raise ValueError(f"episodes must be >= 1 and steps in 1..{EPISODE_STEPS} (dm_control's episode), "
+                         f"got episodes={episodes}, steps={steps}")
     rows = []
     for name in names:
         for episode in range(episodes):
@@ -117,7 +119,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m lnnmpc.analysis.thesis_acrobot",
                                      description=__doc__.split("\n")[0])
     parser.add_argument("--episodes", type=int, default=10, help="episodes per controller (default 10)")
-    parser.add_argument("--steps", type=int, default=1000, help="control steps per episode (default 1000)")
+    parser.add_argument("--steps", type=int, default=EPISODE_STEPS,
+                        help=f"control steps per episode, at most {EPISODE_STEPS} (default all)")
     parser.add_argument("--controllers", default=",".join(CONTROLLERS),
                         help=f"comma-separated, of {', '.join(CONTROLLERS)} (default all)")
     parser.add_argument("--out", default="acrobot_thesis_reward.csv", help="CSV path")
