@@ -28,7 +28,6 @@ Table 5.3, where cfc-zp-det scores 883.1 ± 0.2 on acrobot-swingup (TD-MPC2 329.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -114,6 +113,7 @@ def summary(rows: list[dict]) -> list[dict]:
 
 def main(argv: Sequence[str] | None = None) -> int:
     from lnnmpc.analysis.episodes import markdown_table
+    from lnnmpc.train import runfolder
     from lnnmpc.train.report import StepProgress
 
     parser = argparse.ArgumentParser(prog="python -m lnnmpc.analysis.thesis_acrobot",
@@ -130,10 +130,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as error:
         parser.error(str(error))
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with open(args.out, "w", newline="") as file:
-        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    runfolder.write_csv(args.out, list(rows[0]), rows)
     print(markdown_table(summary(rows), (("controller", "controller", ""), ("episodes", "episodes", "d"),
                                          ("dm_control return", "dm_control", ""), ("eq. 4.6 return", "thesis", ""))))
     print(f"wrote {args.out}")
