@@ -17,6 +17,7 @@ install: $(STAMP)
 # make train TASK=walker-run [AGENT=tdmpc2] [SEEDS=1] [STEPS=200000] [ENVS=1] [OBS="noise=0.1"] [EVAL_OBS=...]
 #            [TRAIN_ARGS="--set plan_horizon=5 --eval-every 20000 ..."]       (python -m lnnmpc.train.cli train -h)
 #            [TRAIN_ARGS="--eval-prior"]: every evaluation also plays its episodes with the policy prior alone
+#            [TRAIN_ARGS="--eval-policies"]: every evaluation also keeps its policy, policies/policy-<step>.npz
 # make train RESUME=<run folder> [STEPS=...]        continue a run exactly where its newest checkpoint left it
 # make train RECIPE=sparse [SEEDS=3] [TASK=...]      a task's measured best settings (`make recipes` lists them);
 #            TASK, AGENT, ENVS, OBS and EVAL_OBS come from the recipe unless given on the command line

@@ -544,7 +544,8 @@ def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp
 
 def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
     """The runs' policy.npz files travel in $OUT/policies.tar, not in results.tar.gz, oldest run first while they
-    keep under POLICY_MIB; a file that would pass it is left out and named in the report, later ones still fit."""
+    keep under POLICY_MIB, then the evaluations' policies; a file that would pass it is left out and named in the
+    report, later ones still fit."""
     import subprocess
     import tarfile
 
@@ -552,15 +553,17 @@ def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
     out.mkdir()
     body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; --size) size=$2;; esac; shift; done; '
             'mkdir -p "$run/checkpoints"; echo rows >"$run/eval.csv"; head -c "$size" /dev/zero >"$run/policy.npz"; '
-            'head -c 10 /dev/zero >"$run/checkpoints/policy.npz"')
+            'head -c 10 /dev/zero >"$run/checkpoints/policy.npz"; mkdir -p "$run/policies"; '
+            'for step in 600 1200; do head -c 100 /dev/zero >"$run/policies/policy-$step.npz"; done')
     env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1")
     jobs = tmp_path / "jobs.txt"
     jobs.write_text("a --size 400000\nb --size 800000\nc --size 400000\n")  # a fits, a + b do not, a + c do
     result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
                             text=True, timeout=60, env=env, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
-    with tarfile.open(out / "policies.tar") as tar:
-        assert sorted(tar.getnames()) == ["./a/policy.npz", "./c/policy.npz"]
+    with tarfile.open(out / "policies.tar") as tar:  # then the evaluations' policies (--eval-policies), newest first
+        assert tar.getnames() == ["./a/policy.npz", "./c/policy.npz",
+                                  *(f"./{run}/policies/policy-{step}.npz" for run in "abc" for step in (1200, 600))]
         assert tar.getmember("./a/policy.npz").size == 400_000
     with tarfile.open(out / "results.tar.gz") as tar:
         names = tar.getnames()
@@ -592,8 +595,11 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
         tar.add(batch, arcname=".")
     (run_dir / "policy.npz").write_bytes(b"study policy")  # packed apart, as device_batch.sh does
     (batch / "plain-run" / "policy.npz").write_bytes(b"plain policy")
+    (batch / "plain-run" / "policies").mkdir()
+    (batch / "plain-run" / "policies" / "policy-600.npz").write_bytes(b"policy at 600")  # --eval-policies
     with tarfile.open(tmp_path / "policies.tar", "w") as tar:
-        for path in (run_dir / "policy.npz", batch / "plain-run" / "policy.npz"):
+        for path in (run_dir / "policy.npz", batch / "plain-run" / "policy.npz",
+                     batch / "plain-run" / "policies" / "policy-600.npz"):
             tar.add(path, arcname="./" + str(path.relative_to(batch)))
     work = tmp_path / "work"
     work.mkdir()
@@ -614,6 +620,8 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     assert f"policies 2 policy.npz from {tmp_path / 'policies.tar'}" in result.stdout  # each beside its run
     assert (filed / "policy.npz").read_bytes() == b"study policy"
     assert (work / "runs" / "ingested" / "plain-run" / "policy.npz").read_bytes() == b"plain policy"
+    assert "1 evaluations' policies (policies/policy-<step>.npz)" in result.stdout
+    assert (work / "runs" / "ingested" / "plain-run" / "policies" / "policy-600.npz").read_bytes() == b"policy at 600"
     assert "(no table for plain-run)" in result.stdout  # its config.json is no trainer's: said, not fatal
     assert "(no speed table)" in result.stdout and "(no commands)" in result.stdout
 

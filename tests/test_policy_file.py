@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import jax
 import numpy as np
 import pytest
@@ -48,3 +50,30 @@ def test_policy_of_another_agent_is_refused_naming_the_leaf(agent_states, tmp_pa
         restore_policy(str(tmp_path), jax.vmap(wider.init)(jax.random.split(jax.random.key(0), 2)))
     with pytest.raises(ConfigError, match="has no policy.npz"):
         restore_policy(str(tmp_path / "elsewhere"), trained)
+
+
+def test_evaluation_snapshots_are_kept_apart_listed_by_step_and_restored_from_their_own_file(agent_states, tmp_path):
+    """``policies/policy-<step>.npz`` (``eval_policies``): each step's file holds that step's parameters;
+    ``policy_path`` prefers ``policy.npz`` where it is of the asked step and names no file for a step without one."""
+    from lnnmpc.train.policy_file import policy_path, save_policy_snapshot, snapshot_path, snapshot_steps
+
+    first, second = agent_states
+    run = str(tmp_path)
+    assert snapshot_steps(run) == [] and policy_path(run, 600) is None
+    save_policy_snapshot(run, 1_200, second)
+    save_policy_snapshot(run, 600, first)
+    save_policy(run, 1_200, second)
+    (tmp_path / "policies" / "policy-600.npz.tmp-1").write_bytes(b"")  # a killed write's leftover: not a step
+    (tmp_path / "policies" / "notes.txt").write_text("")
+    assert snapshot_steps(run) == [600, 1_200]
+    assert policy_path(run, 1_200) == os.path.join(run, POLICY_FILE)
+    assert policy_path(run, 600) == snapshot_path(run, 600) == os.path.join(run, "policies", "policy-600.npz")
+    assert policy_path(run, 900) is None
+    leaves = lambda tree: [np.asarray(x) for x in jax.tree.leaves(tree)]
+    for step, state in ((600, first), (1_200, second)):
+        restored = restore_policy(run, second if step == 600 else first, policy_path(run, step))
+        assert all(np.array_equal(x, y) for x, y in zip(leaves(restored.params), leaves(state.params), strict=True))
+        with np.load(snapshot_path(run, step)) as archive:
+            assert int(archive["step"]) == step
+    with pytest.raises(ConfigError, match=r"has no policies/policy-900.npz"):
+        restore_policy(run, first, snapshot_path(run, 900))

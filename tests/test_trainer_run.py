@@ -81,9 +81,9 @@ def _rows(path) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory, cache):
-    """An uninterrupted run of CONFIG."""
+    """An uninterrupted run of CONFIG, keeping each evaluation's policy (``--eval-policies``)."""
     run = tmp_path_factory.mktemp("runs") / "reference"
-    result = _run([*CONFIG, "--out", str(run), "--compile-ahead", "on"], cache)  # the other runs start with auto
+    result = _run([*CONFIG, "--out", str(run), "--compile-ahead", "on", "--eval-policies"], cache)  # others: auto
     assert result.returncode == 0, result.stderr[-3000:]
     return run
 
@@ -93,9 +93,10 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
 
     files = {p.name for p in reference.iterdir()}
     assert {"config.json", "train.csv", "eval.csv", "curve.png", "summary.md", "checkpoints", "policy.npz"} <= files
-    from lnnmpc.train.policy_file import policy_step
+    from lnnmpc.train.policy_file import policy_step, snapshot_steps
 
     assert policy_step(str(reference)) == CHECKPOINTS[-1]  # rewritten with each checkpoint: the newest's
+    assert snapshot_steps(str(reference)) == CHECKPOINTS  # --eval-policies: one per evaluation (each at a checkpoint)
     config = json.loads((reference / "config.json").read_text())
     assert config["config"]["seeds"] == 2 and config["config"]["replay_capacity"] == 3000
     assert config["num_devices"] == 1
@@ -122,8 +123,9 @@ def test_run_folder_holds_config_logs_checkpoints_plot_and_summary(reference):
     assert summary.count("\n") < 40  # one screen
     (start,) = config["provenance"]  # one start: where the run came from
     assert start["command"].startswith("python -m lnnmpc.train.cli --task cartpole-swingup --small")
-    assert start["command"].endswith(f"--out {reference} --compile-ahead on") and start["argv"][1:] == [
-        *CONFIG, "--out", str(reference), "--compile-ahead", "on"]
+    launched = [*CONFIG, "--out", str(reference), "--compile-ahead", "on", "--eval-policies"]
+    assert start["command"].endswith(f"--out {reference} --compile-ahead on --eval-policies")
+    assert start["argv"][1:] == launched
     import jax
 
     assert start["versions"]["jax"] == jax.__version__ and start["versions"]["mujoco-mjx"]
@@ -313,7 +315,8 @@ def test_evaluate_a_chosen_checkpoint_on_mjx(reference, monkeypatch, cache):
 
 def test_run_folder_without_checkpoints_evaluates_from_its_policy_file(reference, tmp_path, monkeypatch, cache):
     """A run folder brought back from a GPU has no checkpoints (they hold the replay buffer): ``evaluate`` takes
-    its ``policy.npz`` and returns exactly what the newest checkpoint gives."""
+    its ``policy.npz`` and returns exactly what the newest checkpoint gives, and at an earlier evaluation's step
+    that evaluation's policy (``policies/``) what its checkpoint gives."""
     import lnnmpc
 
     monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
@@ -324,8 +327,18 @@ def test_run_folder_without_checkpoints_evaluates_from_its_policy_file(reference
     assert from_policy.checkpoint == from_checkpoint.checkpoint == CHECKPOINTS[-1]
     np.testing.assert_array_equal(from_policy.returns, from_checkpoint.returns)
     assert from_policy.returns.std() > 0  # episodes differ: a real evaluation, not a constant
+    # an earlier evaluation's policy (--eval-policies) plays exactly what that step's checkpoint plays
+    earlier = lnnmpc.evaluate(str(back), episodes=4, seed=3, checkpoint=1450, verbose=False)
+    at_checkpoint = lnnmpc.evaluate(str(reference), episodes=4, seed=3, checkpoint=1450, verbose=False,
+                                    out=str(tmp_path / "c1450.csv"))
+    np.testing.assert_array_equal(earlier.returns, at_checkpoint.returns)
+    assert not np.array_equal(earlier.returns, from_policy.returns)  # another policy than the newest
+    shutil.rmtree(back / "policies")
     with pytest.raises(lnnmpc.ConfigError, match=f"checkpoint 1450 is not in .*; available: {CHECKPOINTS[-1]}"):
         lnnmpc.evaluate(str(back), checkpoint=1450)
+    os.remove(back / "policy.npz")
+    with pytest.raises(lnnmpc.ConfigError, match="has no complete checkpoint, no policy.npz and no policies/"):
+        lnnmpc.evaluate(str(back))
 
 
 def test_trained_agent_beats_its_untrained_self(reference, cache):

@@ -144,16 +144,18 @@ print_report() {
 # results.tar.gz; each replaced whole), where the device tool fetches them: also after a call cut at its limit.
 # The runs' policy.npz files (the newest checkpoint's parameters, some MB per seed) go apart into policies.tar,
 # which keeps under POLICY_MIB (default 15: the tool returns files of at most 16 MiB); the report names any left out.
+# Runs trained with --eval-policies add each evaluation's policy (policies/policy-<step>.npz): packed after every
+# run's policy.npz, newest evaluation first, while they fit.
 pack_out() {
     [ -n "${OUT:-}" ] || return 0
     pack_policies >"$BATCH/policies.txt"
     print_report >"$OUT/.report.txt" 2>&1 && mv "$OUT/.report.txt" "$OUT/report.txt"
-    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock --exclude=policy.npz -C "$BATCH" . \
+    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock --exclude=policy.npz --exclude='policy-*.npz' -C "$BATCH" . \
         && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
 }
 
-# $OUT/policies.tar: every run's policy.npz under $BATCH, oldest run first, as many as keep under POLICY_MIB; prints
-# one line per file left out
+# $OUT/policies.tar: every run's policy.npz under $BATCH, oldest run first, then the evaluations' policies (each
+# run's newest first), as many as keep under POLICY_MIB; prints one line per file left out
 pack_policies() {
     local budget=$((${POLICY_MIB:-15} * 1048576)) used=0 size file packed=()
     while read -r file; do
@@ -164,7 +166,10 @@ pack_policies() {
         else
             echo "policy left out of policies.tar (over POLICY_MIB=${POLICY_MIB:-15}): $file"
         fi
-    done < <(cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' | sort)
+    done < <(cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' | sort \
+             && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' \
+                 | awk -F'/policies/policy-' '{ print $1 "\t" ($2 + 0) "\t" $0 }' | sort -t "$(printf '\t')" -k1,1 -k2,2nr \
+                 | cut -f3)
     [ ${#packed[@]} -gt 0 ] || return 0
     tar cf "$OUT/.policies.tar" -C "$BATCH" "${packed[@]}" && mv "$OUT/.policies.tar" "$OUT/policies.tar"
 }

@@ -3,8 +3,9 @@
 #
 #   experiments/scripts/ingest_batch.sh RESULTS_TAR_GZ
 #
-# A policies.tar beside RESULTS_TAR_GZ (the runs' policy.npz files, packed apart by device_batch.sh) is unpacked
-# over the run folders first, so each filed run keeps its trained policy (git ignores policy.npz);
+# A policies.tar beside RESULTS_TAR_GZ (the runs' policy.npz files and any evaluations' policies/, packed apart by
+# device_batch.sh) is unpacked over the run folders first, so each filed run keeps its trained policy (git ignores
+# policy.npz and policies/policy-*.npz);
 # - every study run folder of the batch (runs/batch/experiments/<task>/<agent>/<condition>, no checkpoints) is
 #   copied into experiments/results/study-runs/, the runs-dir the committed study tables are built from (but
 #   Figure 5.19's: experiments/results/study-runs-fig5_19-h100/). A newer copy of a run replaces the older one,
@@ -39,6 +40,8 @@ policies="$(dirname "$tarball")/policies.tar"
 if [ -f "$policies" ]; then
     tar -xf "$policies" -C "$tmp"
     echo "policies $(tar -tf "$policies" | grep -c 'policy[.]npz$') policy.npz from $policies"
+    snapshots=$(tar -tf "$policies" | grep -c '/policies/policy-[0-9]*[.]npz$' || true)
+    [ "$snapshots" -eq 0 ] || echo "         $snapshots evaluations' policies (policies/policy-<step>.npz)"
 fi
 mkdir -p "$runs"
 if [ -d "$tmp/experiments" ]; then

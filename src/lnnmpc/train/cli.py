@@ -50,6 +50,9 @@ def _train_parser(sub) -> None:
     p.add_argument("--eval-prior", action="store_true",
                    help="every evaluation also plays its episodes with the policy prior acting alone (no MPPI): "
                         "eval.csv's prior_return")
+    p.add_argument("--eval-policies", action="store_true",
+                   help="every evaluation also writes the policy it evaluated to policies/policy-<env step>.npz "
+                        "(eval/video/analyses --checkpoint STEP replay it without checkpoints)")
     p.add_argument("--explore-noise-beta", type=float,
                    help="exploration noise colored over each episode with power spectrum 1/f^BETA (1 pink, 2 red) "
                         "in place of the planner's white noise (default: white, drawn every step)")
@@ -187,7 +190,8 @@ def describe_setup(setup) -> str:
             f"  exploration noise in training: {noise}\n"
             f"  seed phase: {c.seed_steps:,} env steps of {seed_actions}\n"
             f"  evaluation every {c.eval_every:,} env steps, {c.eval_episodes} episode(s) per seed"
-            f"{', also with the policy prior alone (prior_return)' if c.eval_prior else ''}\n"
+            f"{', also with the policy prior alone (prior_return)' if c.eval_prior else ''}"
+            f"{', each policy kept in policies/' if c.eval_policies else ''}\n"
             f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps (ends at "
             f"{setup.final_env_steps:,} env steps), replay "
             f"{loop.config.replay_capacity:,} per env, batch {loop.config.batch_size}, "

@@ -26,11 +26,13 @@ OBS_KEYS = {"noise": "obs_noise", "obs_noise": "obs_noise", "flicker": "flicker"
 TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 # Settings a run may change when it is resumed; everything else must equal the checkpoint's configuration.
-# ``eval_prior`` adds episodes to the evaluations and changes nothing of the training or the planner's returns.
+# ``eval_prior`` adds episodes to the evaluations and changes nothing of the training or the planner's returns;
+# ``eval_policies`` only writes files.
 # ``overrides`` may change as long as the agent's resolved hyperparameters stay those of the checkpoint (checked
 # by lnnmpc.train.compat.check_agent_config), e.g. to pin a default that changed in the code since the run.
 RESUMABLE_CHANGES = ("steps", "name", "runs_dir", "checkpoint_every", "keep_checkpoints", "devices",
-                     "tensorboard", "wandb", "compile_cache", "compile_ahead", "eval_prior", "overrides")
+                     "tensorboard", "wandb", "compile_cache", "compile_ahead", "eval_prior", "eval_policies",
+                     "overrides")
 COMPILE_AHEAD = ("auto", "on", "off")
 
 
@@ -136,6 +138,9 @@ class TrainConfig:
         prior acting alone (``lnnmpc.agents.actor``), in the same compiled program; eval.csv gains a
         ``prior_return`` column. Off: the evaluation and eval.csv are those of runs before the option. A resumed
         run may turn it on or off (the training does not depend on it).
+      eval_policies: every evaluation also writes the policy it evaluated (parameters alone, as ``policy.npz``) to
+        ``policies/policy-<env step>.npz`` (:mod:`lnnmpc.train.policy_file`), so that ``eval``, ``video`` and the
+        analyses can replay any evaluation's policy of a run whose checkpoints stayed on the GPU.
       explore_noise_beta: None (TD-MPC2): the planner's exploration noise in training is white, drawn anew at
         every step; β >= 0: each environment draws, at every episode start, one Gaussian sequence over the episode
         with power spectrum 1/f^β (1: pink, 2: red; ``lnnmpc.agents.exploration``), and step t's sample replaces
@@ -189,6 +194,7 @@ class TrainConfig:
     compile_cache: str = dataclasses.field(default_factory=default_compile_cache)
     compile_ahead: str = "auto"
     eval_prior: bool = False
+    eval_policies: bool = False
     explore_noise_beta: float | None = None
     seed_noise_beta: float | None = None
 
@@ -214,7 +220,7 @@ class TrainConfig:
         if self.steps < self.seed_steps:
             raise ConfigError(f"steps ({self.steps}) must be >= seed_steps ({self.seed_steps}): the budget "
                               "includes the random seed phase")
-        for name in ("small", "tensorboard", "eval_prior"):
+        for name in ("small", "tensorboard", "eval_prior", "eval_policies"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for name, default in (("explore_noise_beta", "TD-MPC2's white noise"),

@@ -11,8 +11,9 @@ program on the default JAX device with the physics profile the run trained on; `
 same agent on the original dm_control simulator on the CPU (:mod:`lnnmpc.train.dm_backend`). The CSV has one
 row per (seed, episode) with the checkpoint's environment step, backend and corruption options. A run folder
 without its checkpoints (one brought back from a GPU) is evaluated from its ``policy.npz``
-(:mod:`lnnmpc.train.policy_file`), the newest checkpoint's parameters. ``actor="prior"`` lets the policy prior
-act alone instead of MPPI (:mod:`lnnmpc.agents.actor`): what planning adds to the learned policy.
+(:mod:`lnnmpc.train.policy_file`), the newest checkpoint's parameters, or at an earlier evaluation's step from
+that evaluation's snapshot in ``policies/`` (runs trained with ``eval_policies``). ``actor="prior"`` lets the
+policy prior act alone instead of MPPI (:mod:`lnnmpc.agents.actor`): what planning adds to the learned policy.
 ``planner={"iterations": 12}`` plans with other MPPI settings than the run trained with (planner-only keys,
 :func:`lnnmpc.agents.overrides.planner_keys`; the parameters do not depend on them); the CSV's name and its
 ``planner`` column say which.
@@ -36,7 +37,7 @@ from lnnmpc.train.checkpoint import all_steps, restore_checkpoint
 from lnnmpc.train.compat import check_layout, state_signature
 from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, parse_obs, require_int
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
-from lnnmpc.train.policy_file import POLICY_FILE, policy_step, restore_policy
+from lnnmpc.train.policy_file import POLICY_FILE, SNAPSHOT_DIR, policy_path, policy_step, restore_policy, snapshot_steps
 from lnnmpc.train.report import StepProgress
 from lnnmpc.train.setup import build_loop, enable_compile_cache, shared_env
 from lnnmpc.train.sharding import SeedPlacement
@@ -85,13 +86,12 @@ def check_observation_size(env, policy: Policy) -> None:
 
 
 def choose_checkpoint(run: str, checkpoint: int | None) -> int:
-    """A step of ``run`` with a complete checkpoint or its ``policy.npz`` (the newest by default)."""
-    steps = all_steps(run)
+    """A step of ``run`` with a complete checkpoint, its ``policy.npz`` or an evaluation's policy snapshot
+    (``policies/``; the newest step by default)."""
     exported = policy_step(run)
-    if exported is not None and exported not in steps:
-        steps = sorted([*steps, exported])
+    steps = sorted({*all_steps(run), *snapshot_steps(run), *([] if exported is None else [exported])})
     if not steps:
-        raise ConfigError(f"{run!r} has no complete checkpoint and no {POLICY_FILE}")
+        raise ConfigError(f"{run!r} has no complete checkpoint, no {POLICY_FILE} and no {SNAPSHOT_DIR}/")
     if checkpoint is None:
         return steps[-1]
     if checkpoint not in steps:
@@ -116,10 +116,12 @@ def policy_at(policy: Policy, run: str, checkpoint: int) -> Policy:
 
 def _restored(policy: Policy, run: str) -> Policy:
     """``policy`` with the agent state of its (existing) ``checkpoint`` step of ``run``: from the checkpoint, or
-    where the run has none at that step (a run folder back from a GPU) from its ``policy.npz``."""
+    where the run has none at that step (a run folder back from a GPU) from its ``policy.npz`` or that step's
+    evaluation snapshot."""
     keys = jax.random.split(jax.random.key(0), policy.config.seeds)
     if policy.checkpoint not in all_steps(run):
-        agent_state = restore_policy(run, jax.jit(jax.vmap(policy.loop.agent.init))(keys))
+        like = jax.jit(jax.vmap(policy.loop.agent.init))(keys)
+        agent_state = restore_policy(run, like, policy_path(run, policy.checkpoint))
         return dataclasses.replace(policy, agent_state=agent_state)
     state, _ = restore_checkpoint(run, policy.checkpoint, _state_shapes(policy.config, policy.loop, keys))
     return dataclasses.replace(policy, agent_state=state.agent)

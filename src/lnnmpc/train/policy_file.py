@@ -11,12 +11,17 @@ initialised.
 The file is a plain NumPy archive (``numpy.load`` reads it without lnnmpc): ``step`` (environment steps), ``paths``
 (each leaf's key path, e.g. ``['params']['encoder']['Dense_0']['kernel']``) and ``leaf_<i>`` (the i-th leaf,
 (seeds, ...)). It is written under a temporary name and renamed, so a run killed mid-write keeps the previous one.
+
+With ``eval_policies`` (``train --eval-policies``) the trainer also keeps the policy of every evaluation, in the same
+format, as ``<run>/policies/policy-<env step>.npz`` (a 1-seed acrobot policy: ~2.4 MB): a run back from a GPU can
+then be evaluated and analysed at each evaluation's step (e.g. before and after a dip), not only at its last.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import re
 from typing import Any
 
 import jax
@@ -25,6 +30,8 @@ import numpy as np
 from lnnmpc.train.config import ConfigError
 
 POLICY_FILE = "policy.npz"
+SNAPSHOT_DIR = "policies"  # the policy of each evaluation, with eval_policies
+_SNAPSHOT = re.compile(r"policy-(\d+)[.]npz")
 EXPORTED = ("params", "scale", "updates")  # the AgentState fields the file holds
 
 
@@ -41,14 +48,46 @@ def _paths_and_leaves(tree: Any) -> tuple[list[str], list[Any], Any]:
 def save_policy(run: str, step: int, agent_state: Any) -> str:
     """Writes ``agent_state``'s ``params``, ``scale`` and ``updates`` (seed-batched) as ``<run>/policy.npz`` at
     environment step ``step`` (replacing the previous file atomically); returns its path."""
+    return _write_policy(os.path.join(run, POLICY_FILE), step, agent_state)
+
+
+def save_policy_snapshot(run: str, step: int, agent_state: Any) -> str:
+    """Writes the same as :func:`save_policy` to ``<run>/policies/policy-<step>.npz`` (kept beside the others);
+    returns its path."""
+    os.makedirs(os.path.join(run, SNAPSHOT_DIR), exist_ok=True)
+    return _write_policy(snapshot_path(run, step), step, agent_state)
+
+
+def _write_policy(path: str, step: int, agent_state: Any) -> str:
     paths, leaves, _ = _paths_and_leaves(_exported(agent_state))
     arrays = {f"leaf_{i}": np.asarray(leaf) for i, leaf in enumerate(leaves)}
-    path = os.path.join(run, POLICY_FILE)
     temporary = f"{path}.tmp-{os.getpid()}"
     with open(temporary, "wb") as f:
         np.savez(f, step=np.int64(step), paths=np.asarray(paths), **arrays)
     os.replace(temporary, path)
     return path
+
+
+def snapshot_path(run: str, step: int) -> str:
+    """Where the policy of the evaluation at environment step ``step`` is kept: ``<run>/policies/policy-<step>.npz``."""
+    return os.path.join(run, SNAPSHOT_DIR, f"policy-{int(step)}.npz")
+
+
+def snapshot_steps(run: str) -> list[int]:
+    """The environment steps of ``<run>/policies/policy-<step>.npz`` files, ascending (empty without any)."""
+    folder = os.path.join(run, SNAPSHOT_DIR)
+    if not os.path.isdir(folder):
+        return []
+    return sorted(int(m.group(1)) for m in map(_SNAPSHOT.fullmatch, os.listdir(folder)) if m)
+
+
+def policy_path(run: str, step: int) -> str | None:
+    """The file holding ``run``'s policy at environment step ``step``: ``policy.npz`` where it is of that step,
+    else that step's evaluation snapshot; None where neither exists."""
+    if policy_step(run) == step:
+        return os.path.join(run, POLICY_FILE)
+    path = snapshot_path(run, step)
+    return path if os.path.isfile(path) else None
 
 
 def policy_step(run: str) -> int | None:
@@ -60,13 +99,14 @@ def policy_step(run: str) -> int | None:
         return int(archive["step"])
 
 
-def restore_policy(run: str, like: Any) -> Any:
+def restore_policy(run: str, like: Any, path: str | None = None) -> Any:
     """``like`` (an agent state of the run's configuration, seed-batched, e.g. freshly initialised) with the
-    ``params``, ``scale`` and ``updates`` of ``<run>/policy.npz``, each leaf placed as ``like``'s; a file whose
-    leaves differ from ``like``'s (another agent or size) raises a ConfigError naming the first that differs."""
-    path = os.path.join(run, POLICY_FILE)
+    ``params``, ``scale`` and ``updates`` of ``<run>/policy.npz`` (or of the file ``path``, e.g. a snapshot of
+    :func:`policy_path`), each leaf placed as ``like``'s; a file whose leaves differ from ``like``'s (another agent
+    or size) raises a ConfigError naming the first that differs."""
+    path = path or os.path.join(run, POLICY_FILE)
     if not os.path.isfile(path):
-        raise ConfigError(f"{run!r} has no {POLICY_FILE}")
+        raise ConfigError(f"{run!r} has no {os.path.relpath(path, run)}")
     like_paths, like_leaves, treedef = _paths_and_leaves(_exported(like))
     with np.load(path) as archive:
         paths = [str(p) for p in archive["paths"]]

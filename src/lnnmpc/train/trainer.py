@@ -46,7 +46,7 @@ from lnnmpc.train.checkpoint import latest_step, restore_checkpoint, save_checkp
 from lnnmpc.train.compat import agent_config_json
 from lnnmpc.train.config import TrainConfig
 from lnnmpc.train.guard import StopRequest, all_finite, first_non_finite
-from lnnmpc.train.policy_file import save_policy
+from lnnmpc.train.policy_file import save_policy, save_policy_snapshot
 from lnnmpc.train.provenance import process_seconds, provenance_entry
 from lnnmpc.train.setup import Setup, enable_compile_cache, validate
 from lnnmpc.train.sharding import AheadOfTime, SeedPlacement, compile_ahead
@@ -314,6 +314,8 @@ class _Run:
                  **{name: float(values[name][s, e]) for name in columns}}
                 for s in range(seeds) for e in range(episodes)]
         runfolder.append_csv(os.path.join(self.run, "eval.csv"), rows)
+        if self.config.eval_policies:  # the evaluated parameters, for analyses of runs back from a GPU
+            save_policy_snapshot(self.run, n["env_steps"], self.ts.agent)
         self.progress.last_eval = float(values["return"].mean())
         self.progress.last_prior = float(values["prior_return"].mean()) if "prior_return" in values else np.nan
         for logger in self.loggers:
