@@ -72,8 +72,10 @@ def test_cli_trains_from_a_recipe_and_lists_them(tmp_path, capsys):
                    "cartpole-swingup with cfc-op-det\n")
     assert "cartpole-swingup, cfc-op-det, 1 seed(s) x 8 env(s)" in out
     assert "seed phase: 20,000 env steps of colored noise over each episode, spectrum 1/f^1, clipped" in out
-    main(["train", "--recipe", "acrobot", "--small", "--out", str(run), "--check"])  # its overrides build an agent
-    assert "acrobot-swingup, cfc-zp-det, 1 seed(s) x 16 env(s)" in capsys.readouterr().out
+    main(["train", "--recipe", "acrobot", "--small", "--out", str(run), "--check", "--eval-policies"])  # builds
+    out = capsys.readouterr().out
+    assert "acrobot-swingup, cfc-zp-det, 1 seed(s) x 16 env(s)" in out
+    assert "10 episode(s) per seed, each policy kept in policies/\n" in out  # --eval-policies, said
     main(["recipes"])
     listing = capsys.readouterr().out
     for recipe in RECIPES.values():
