@@ -92,7 +92,8 @@ def _eval_parser(sub) -> None:
     p.add_argument("--episodes", type=int, default=10, help="episodes per seed")
     p.add_argument("--backend", default="mjx", help="mjx or dm_control (the original simulator, CPU)")
     p.add_argument("--checkpoint", type=int, default=None,
-                   help="environment step of a checkpoint or of policy.npz (default the newest)")
+                   help="environment step of a checkpoint, of policy.npz or of an evaluation's policy in "
+                        "policies/ (default the newest)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="CSV path (default <run>/evals/<backend>-<obs>-<step>.csv)")
     p.add_argument("--actor", default="planner",
