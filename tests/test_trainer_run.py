@@ -366,6 +366,30 @@ def test_trained_agent_beats_its_untrained_self(reference, cache):
     assert (after > before + 40).all() and after.mean() > 90, (before, after)
 
 
+def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
+    """Every evaluation of eval.csv replayed outside the trainer: that step's policy, the trainer's evaluation key for
+    it (split in turn from ``key(seed + 10,000)``), through ``mjx_evaluator`` (another compiled program: it records no
+    latents). The same episodes must give the same returns, so that a standalone evaluation's numbers and a run's
+    curve differ only by the episodes they play (``lnnmpc.evaluate``'s default key is ``key(0)``: other episodes)."""
+    import jax
+
+    from lnnmpc.train.evaluate import load_policy, mjx_evaluator, policy_at
+    from lnnmpc.train.setup import enable_compile_cache
+
+    enable_compile_cache(cache)
+    policy = load_policy(str(reference))
+    evaluate = mjx_evaluator(policy.loop.agent, policy.loop.eval_env, episodes=2, seeds=2)
+    rows = _rows(reference / "eval.csv")
+    chain = jax.random.key(policy.config.seed + 10_000)
+    for step in CHECKPOINTS:
+        chain, key = jax.random.split(chain)
+        logged = np.zeros((2, 2))
+        for row in (r for r in rows if int(r["env_step"]) == step):
+            logged[int(row["seed"]), int(row["episode"])] = float(row["return"])
+        replayed = evaluate(policy_at(policy, str(reference), step).agent_state, key)
+        np.testing.assert_allclose(replayed, logged, rtol=1e-4, atol=1e-2, err_msg=f"evaluation at {step}")
+
+
 def _cli_in_process(capsys, *args: str, refused: bool = False) -> tuple[str, str]:
     """The CLI run in this process on ``args`` (as ``make eval`` runs it, without a Python start-up and imports of
     its own): its stdout and stderr. It must succeed (no SystemExit), or with ``refused`` exit with status 2."""
