@@ -626,6 +626,50 @@ def test_ingest_batch_files_study_runs_ranks_and_whole_tables(tmp_path):
     assert "(no speed table)" in result.stdout and "(no commands)" in result.stdout
 
 
+def test_ingest_batch_keeps_a_runs_earlier_policies_that_a_later_batch_left_out(tmp_path):
+    """A warm machine's second batch brings a run of its first back again, its policies.tar without the
+    evaluations' policies it had no room for: the staged run keeps those of the first ingest. A run of the same
+    name with another config.json (launched again) keeps nothing of the older one."""
+    import subprocess
+    import tarfile
+
+    def ingest(name: str, config: str, policies: dict[str, bytes]) -> subprocess.CompletedProcess:
+        batch = tmp_path / name / "batch"
+        run = batch / "acro"
+        (run / "policies").mkdir(parents=True)
+        (run / "config.json").write_text(config)
+        for rel, data in policies.items():
+            (run / rel).write_bytes(data)
+        with tarfile.open(tmp_path / name / "policies.tar", "w") as tar:
+            for rel in policies:
+                tar.add(run / rel, arcname=f"./acro/{rel}")
+            for rel in policies:
+                (run / rel).unlink()
+        with tarfile.open(tmp_path / name / "results.tar.gz", "w:gz") as tar:
+            tar.add(batch, arcname=".")
+        return subprocess.run(["bash", script, str(tmp_path / name / "results.tar.gz")], cwd=work, timeout=120,
+                              env={**os.environ, "PYTHON": "true"}, capture_output=True, text=True)  # no tables
+
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "ingest_batch.sh")
+    work = tmp_path / "work"
+    work.mkdir()
+    staged = work / "runs" / "ingested" / "acro"
+    first = ingest("first", '{"launch": 1}', {"policy.npz": b"final", "policies/policy-600.npz": b"at 600",
+                                              "policies/policy-1200.npz": b"at 1200"})
+    assert first.returncode == 0, first.stderr
+    second = ingest("second", '{"launch": 1}', {"policies/policy-1200.npz": b"at 1200"})
+    assert second.returncode == 0, second.stderr
+    assert sorted(p.name for p in (staged / "policies").iterdir()) == ["policy-1200.npz", "policy-600.npz"]
+    assert (staged / "policy.npz").read_bytes() == b"final"
+    assert (staged / "policies" / "policy-600.npz").read_bytes() == b"at 600"
+    assert "kept     runs/ingested/acro/policies/policy-600.npz" in second.stdout
+    assert second.stdout.count("kept ") == 2
+    relaunched = ingest("third", '{"launch": 2}', {"policies/policy-1200.npz": b"new at 1200"})
+    assert relaunched.returncode == 0, relaunched.stderr
+    assert [p.name for p in (staged / "policies").iterdir()] == ["policy-1200.npz"]
+    assert not (staged / "policy.npz").exists() and "kept " not in relaunched.stdout
+
+
 def test_ingest_batch_never_replaces_a_longer_filed_run_with_a_shorter_copy(tmp_path):
     """A run killed early on the device (fewer env steps than the copy filed before) is kept out of study-runs/
     unless FORCE=1; a copy that reached as far or further replaces the filed one, listing the filed copy's

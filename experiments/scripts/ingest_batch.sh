@@ -19,7 +19,9 @@
 #   dropped), measured cells from whatever study-runs/ holds, "not yet run" elsewhere;
 # - the batch's plain training runs (runs/batch/<name>/) are listed and copied to $STAGING (default
 #   runs/ingested/<name>, git-ignored), to be filed by hand with a README; their tables (`lnnmpc.train.tables`:
-#   every evaluation and the speed) are printed for it.
+#   every evaluation and the speed) are printed for it. A run that an earlier batch of the same warm machine
+#   brought back already (the same config.json) keeps the policy files staged then that this batch's
+#   policies.tar left out (over device_batch.sh's POLICY_MIB).
 # $PYTHON picks the interpreter (default .venv/bin/python). Commit what it wrote right after.
 set -eu
 tarball=${1:?usage: ingest_batch.sh RESULTS_TAR_GZ}
@@ -33,6 +35,17 @@ last_env_step() {  # RUN_DIR: the last env_step its eval.csv logged (0 without e
     else
         echo 0
     fi
+}
+keep_policies() {  # OLD NEW: OLD's policy files that NEW lacks, moved into NEW when both are one run (same config.json)
+    [ -f "$1/config.json" ] && [ -f "$2/config.json" ] && cmp -s "$1/config.json" "$2/config.json" || return 0
+    local file rel
+    for file in "$1"/policy.npz "$1"/policies/policy-*.npz; do
+        rel=${file#"$1"/}
+        [ -f "$file" ] && [ ! -f "$2/$rel" ] || continue
+        mkdir -p "$(dirname "$2/$rel")"
+        mv "$file" "$2/$rel"
+        echo "kept     $1/$rel (this run's, filed before; the batch's policies.tar lacks it)"
+    done
 }
 trap 'rm -rf "$tmp"' EXIT
 tar -xzf "$tarball" -C "$tmp"
@@ -82,6 +95,7 @@ for run in "$tmp"/*/; do
     name=$(basename "$run")
     if [ "$name" != experiments ] && [ "$name" != studies ] && [ -f "$run/config.json" ]; then
         mkdir -p "$staging"
+        keep_policies "$staging/$name" "$run"
         rm -rf "${staging:?}/$name"
         cp -r "$run" "$staging/$name"
         echo "plain run (file it by hand): runs/batch/$name, copied to $staging/$name"
