@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install train recipes eval video report compare tables test lint fmt bench bench-env bench-cells clean
+.PHONY: install train recipes eval video report compare paired tables test lint fmt bench bench-env bench-cells clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -53,6 +53,7 @@ recipes: $(STAMP)
 # make eval RUN=<run folder> [OBS=...] [EPISODES=10] [BACKEND=mjx|dm_control] [CHECKPOINT=<env step>]
 #           [ACTOR=prior]: the policy prior alone acts (no MPPI), to see what planning adds
 #           [PLANNER="plan_horizon=5 iterations=12"]: plan with other MPPI settings than the run trained with
+#           [EVAL_SEED=k]: the episodes' seed (default 0); evaluations with one seed play the same episodes
 RUN        ?=
 EPISODES   ?= 10
 BACKEND    ?= mjx
@@ -62,7 +63,8 @@ PLANNER    ?=
 eval: $(STAMP)
 	$(PY) -m lnnmpc.train.cli eval "$(RUN)" --episodes $(EPISODES) --backend $(BACKEND) \
 		$(if $(filter command line,$(origin OBS)),--obs "$(OBS)") $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
-		$(if $(ACTOR),--actor $(ACTOR)) $(foreach setting,$(PLANNER),--planner $(setting))
+		$(if $(ACTOR),--actor $(ACTOR)) $(foreach setting,$(PLANNER),--planner $(setting)) \
+		$(if $(EVAL_SEED),--seed $(EVAL_SEED))
 
 # make video RUN=<run folder> [OUT=episode.mp4|.gif] [CHECKPOINT=...] [ACTOR=prior]  (offscreen OpenGL: Mesa EGL by default)
 # [FILMS=N [FALLS=R]]: N episodes into a folder, keeping those whose return ended below R
@@ -90,6 +92,13 @@ compare: $(STAMP)
 	$(PY) -m lnnmpc.train.compare $(RUNS) --out "$(or $(OUT),curves.png)" $(if $(LABELS),--labels $(LABELS)) \
 		$(if $(METRICS),--metrics $(METRICS)) $(if $(POOL),--pool "$(POOL)") \
 		$(if $(EVAL_COLUMN),--eval-column $(EVAL_COLUMN))
+
+# make paired CSVS="a.csv b.csv ..." [LABELS="'a' 'b'"] [PLOT=paired.png] [COMMON=1]
+#   evaluations of several policies on the same episodes (make eval, one EVAL_SEED) compared episode by episode
+#   against the first: mean difference ± standard error, episodes more / less, correlation
+paired: $(STAMP)
+	$(PY) -m lnnmpc.train.paired $(CSVS) $(if $(LABELS),--labels $(LABELS)) $(if $(PLOT),--plot "$(PLOT)") \
+		$(if $(COMMON),--common)
 
 # make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"] [FALLS=400]
 #   markdown tables of several runs: every evaluation (mean ± std, std over seeds, seed means), the speed and

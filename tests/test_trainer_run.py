@@ -435,7 +435,8 @@ def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monke
     monkeypatch.setenv("LNNMPC_COMPILE_CACHE", cache)
     planner = lnnmpc.evaluate(str(reference), episodes=4, seed=5, verbose=False)
     prior = lnnmpc.evaluate(str(reference), episodes=4, seed=5, actor="prior", verbose=False)
-    assert os.path.basename(prior.path) == "mjx-prior-clean-2804.csv" and prior.returns.shape == (2, 4)
+    assert os.path.basename(prior.path) == "mjx-prior-seed5-clean-2804.csv" and prior.returns.shape == (2, 4)
+    assert {r["eval_seed"] for r in _rows(prior.path)} == {"5"}  # another seed's episodes: a file of their own
     assert {r["actor"] for r in _rows(prior.path)} == {"prior"} and {r["actor"] for r in _rows(planner.path)} == {
         "planner"}
     assert np.all((prior.returns >= 0) & (prior.returns <= 1000))
@@ -443,8 +444,8 @@ def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monke
     stdout, _ = _cli_in_process(capsys, "eval", str(reference), "--episodes", "1", "--backend", "dm_control",
                                 "--actor", "prior")
     assert "checkpoint 2,804 on dm_control with clean, acting with the prior: return " in stdout
-    rows = _rows(reference / "evals" / "dm_control-prior-clean-2804.csv")
-    assert len(rows) == 2 and {r["actor"] for r in rows} == {"prior"}
+    rows = _rows(reference / "evals" / "dm_control-prior-clean-2804.csv")  # seed 0: the name without a seed
+    assert len(rows) == 2 and {r["actor"] for r in rows} == {"prior"} and {r["eval_seed"] for r in rows} == {"0"}
     assert "unknown actor 'mpc'; known: planner, prior" in _refused(capsys, "eval", str(reference), "--actor", "mpc")
 
 

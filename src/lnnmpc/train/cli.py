@@ -94,7 +94,8 @@ def _eval_parser(sub) -> None:
     p.add_argument("--checkpoint", type=int, default=None,
                    help="environment step of a checkpoint, of policy.npz or of an evaluation's policy in "
                         "policies/ (default the newest)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="the episodes' seed (default 0): evaluations with one seed "
+                   "play the same episodes, to compare episode by episode (python -m lnnmpc.train.paired)")
     p.add_argument("--out", default=None, help="CSV path (default <run>/evals/<backend>-<obs>-<step>.csv)")
     p.add_argument("--actor", default="planner",
                    help="planner (MPPI, as training evaluates) or prior (the policy prior alone, no planning; "

@@ -231,6 +231,9 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     :mod:`lnnmpc.agents.actor`), whose CSV is named ``<backend>-prior-<obs>-<step>.csv``.
     ``planner``: MPPI settings to plan with instead of the run's ({key: value}, e.g. ``{"iterations": 12}``);
     the CSV is named ``<backend>-<key><value>...-<obs>-<step>.csv``.
+    ``seed``: the episodes' key (``jax.random.key(seed)``; dm_control's initial states from it too): runs and
+    settings evaluated with one seed play the same episodes (``lnnmpc.train.paired`` compares them episode by
+    episode). The CSV's ``eval_seed`` column records it; a seed other than 0 names the CSV ``...-seed<k>-<obs>-...``.
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
@@ -258,13 +261,14 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
                                progress=StepProgress(unit) if verbose else None)
     by = "" if actor == "planner" else f"{actor}-"
     by += "".join(f"{key}{value}-" for key, value in sorted((planner or {}).items()))
+    by += "" if seed == 0 else f"seed{seed}-"  # other episodes than the default key's: a file of their own
     path = out or os.path.join(run, "evals", f"{backend}-{by}{obs_tag(options)}-{step}.csv")
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     if os.path.exists(path):
         os.remove(path)
     runfolder.append_csv(path, [
         {"env_step": step, "seed": s, "episode": e, "return": float(returns[s, e]), "backend": backend,
-         "obs": obs_tag(options), "actor": actor, "planner": planner_tag(planner)}
+         "obs": obs_tag(options), "actor": actor, "planner": planner_tag(planner), "eval_seed": seed}
         for s in range(returns.shape[0]) for e in range(returns.shape[1])])
     result = EvalResult(returns=returns, checkpoint=step, backend=backend, obs=options, path=path)
     if verbose:

@@ -1,0 +1,202 @@
+"""``python -m lnnmpc.train.paired CSV CSV [...]``: policies compared episode by episode, on the same episodes.
+
+    python -m lnnmpc.train.cli eval runs/a --episodes 20 --out a.csv      # one --seed (default 0) for all
+    python -m lnnmpc.train.cli eval runs/b --episodes 20 --out b.csv
+    python -m lnnmpc.train.paired a.csv b.csv --labels "lr decay" "constant lr" --plot paired.png
+
+Where the initial state sets much of an episode's return (acrobot: the four policies of RESULTS.md [73] correlate
+at 0.84-0.94 episode by episode), two policies evaluated on episodes of their own differ by the episodes as much
+as by the policies. Evaluations written by ``cli eval`` (``lnnmpc.evaluate``) with one ``--seed`` on one backend
+play the same episodes: episode e of seed s starts from the same state. Compared row by row, the episodes' share
+of the difference cancels.
+
+The table gives each CSV's mean ± std over its episodes, then for each CSV after the first its difference to the
+first: the mean of the per-episode differences, their standard error (sample std / sqrt(n)), the episodes on
+which it returns more and less, and the correlation of the two CSVs' returns. ``--plot`` draws each CSV's returns
+against the first's, episode by episode. CSVs that do not hold the same episodes are refused with the reason:
+another backend, corruption or eval seed, other (seed, episode) rows, several checkpoints in one file, or the
+training's ``eval.csv`` (each of its evaluations plays episodes of a key of its own). ``--common`` compares the
+rows all CSVs hold instead: an evaluation's first k episodes are those of a longer one with the same seed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+
+import numpy as np
+
+from lnnmpc.train import runfolder
+from lnnmpc.train.config import ConfigError, command_status
+
+# Columns that must agree for two CSVs to hold the same episodes (eval_seed: CSVs written since it is recorded)
+_SAME_EPISODES = ("backend", "obs", "eval_seed")
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeReturns:
+    """One ``cli eval`` CSV: ``returns[(seed, episode)]`` and what decides its episodes."""
+
+    path: str
+    returns: dict[tuple[int, int], float]
+    episodes_from: dict[str, str]  # backend, obs and eval_seed (absent in CSVs written before it was recorded)
+    env_step: str
+
+    def values(self, keys: list[tuple[int, int]]) -> np.ndarray:
+        """The returns of rows ``keys``, in that order (n,)."""
+        return np.array([self.returns[k] for k in keys], dtype=np.float64)
+
+
+def read_episode_returns(path: str) -> EpisodeReturns:
+    """Reads an evaluation CSV that ``cli eval`` wrote; ConfigError for a file that is none."""
+    if not os.path.isfile(path):
+        raise ConfigError(f"no evaluation CSV at {path!r}")
+    rows = runfolder.read_csv(path)
+    if not rows:
+        raise ConfigError(f"{path!r} holds no evaluation rows")
+    missing = [c for c in ("env_step", "seed", "episode", "return", "backend", "obs") if c not in rows[0]]
+    if missing:
+        raise ConfigError(f"{path!r} is not a CSV of `cli eval` (no {', '.join(missing)} column; a training's "
+                          "eval.csv plays other episodes at each evaluation): evaluate each policy with "
+                          "`python -m lnnmpc.train.cli eval RUN --out CSV`")
+    steps = sorted({r["env_step"] for r in rows}, key=int)
+    if len(steps) > 1:
+        raise ConfigError(f"{path!r} holds evaluations of several checkpoints ({', '.join(steps)}): one per CSV")
+    returns = {}
+    for r in rows:
+        key = (int(r["seed"]), int(r["episode"]))
+        if key in returns:
+            raise ConfigError(f"{path!r} holds seed {key[0]} episode {key[1]} twice")
+        returns[key] = float(r["return"])
+    episodes_from = {c: rows[0][c] for c in _SAME_EPISODES if c in rows[0]}
+    for c, value in episodes_from.items():
+        if any(r[c] != value for r in rows):
+            raise ConfigError(f"{path!r} mixes several values of {c}")
+    return EpisodeReturns(path=path, returns=returns, episodes_from=episodes_from, env_step=steps[0])
+
+
+def check_same_episodes(first: EpisodeReturns, other: EpisodeReturns, common: bool = False) -> list[str]:
+    """Raises ConfigError where ``other`` does not hold ``first``'s episodes (with ``common``, where the two share
+    no (seed, episode) row); returns notes (an eval seed that either CSV does not record, so cannot be checked)."""
+    for c in _SAME_EPISODES:
+        a, b = first.episodes_from.get(c), other.episodes_from.get(c)
+        if a is not None and b is not None and a != b:
+            raise ConfigError(f"{other.path!r} played other episodes than {first.path!r}: {c} {b!r} against "
+                              f"{a!r} (evaluate both with the same --backend, --obs and --seed)")
+    if common and not set(first.returns) & set(other.returns):
+        raise ConfigError(f"{other.path!r} and {first.path!r} share no (seed, episode) row")
+    if not common and set(first.returns) != set(other.returns):
+        only_first = sorted(set(first.returns) - set(other.returns))
+        only_other = sorted(set(other.returns) - set(first.returns))
+        raise ConfigError(f"{other.path!r} and {first.path!r} hold other (seed, episode) rows: only in the first "
+                          f"{only_first[:4] or 'none'}, only in {os.path.basename(other.path)!r} "
+                          f"{only_other[:4] or 'none'} (evaluate both with the same --episodes, or compare the "
+                          "rows they share with --common)")
+    return [f"note: {csv.path!r} records no eval_seed (written before it was): taken to be the others'"
+            for csv in (first, other) if "eval_seed" not in csv.episodes_from]
+
+
+def shared_rows(csvs: list[EpisodeReturns]) -> list[tuple[int, int]]:
+    """The (seed, episode) rows every CSV holds, sorted."""
+    return sorted(set.intersection(*(set(c.returns) for c in csvs)))
+
+
+def paired_rows(csvs: list[EpisodeReturns], labels: list[str]) -> list[dict]:
+    """One row per CSV over the rows all of them hold: label, episodes, mean and std of its returns; for the
+    CSVs after the first also the paired difference to the first (diff, se), the episodes it wins and loses,
+    and the correlation (corr)."""
+    keys = shared_rows(csvs)
+    base = csvs[0].values(keys)
+    rows = []
+    for label, csv in zip(labels, csvs, strict=True):
+        x = csv.values(keys)
+        row = {"label": label, "episodes": len(keys), "mean": x.mean(), "std": x.std()}
+        if csv is not csvs[0]:
+            d = x - base
+            row.update(diff=d.mean(), se=d.std(ddof=1) / np.sqrt(d.size) if d.size > 1 else np.nan,
+                       wins=int((d > 0).sum()), losses=int((d < 0).sum()),
+                       corr=np.corrcoef(x, base)[0, 1] if x.std() > 0 and base.std() > 0 else np.nan)
+        rows.append(row)
+    return rows
+
+
+def paired_table(rows: list[dict]) -> str:
+    """Markdown table of :func:`paired_rows`."""
+    first = rows[0]["label"]
+    lines = [f"| policy | episodes | mean ± std | minus {first} (± standard error) | more / less than {first} | "
+             "correlation |", "|---|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        cells = [r["label"], str(r["episodes"]), f"{r['mean']:.1f} ± {r['std']:.1f}"]
+        if "diff" in r:
+            se = "" if np.isnan(r["se"]) else f" ± {r['se']:.1f}"
+            corr = "" if np.isnan(r["corr"]) else f"{r['corr']:.2f}"
+            cells += [f"{r['diff']:+.1f}{se}", f"{r['wins']} / {r['losses']}", corr]
+        else:
+            cells += ["", "", ""]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_paired(csvs: list[EpisodeReturns], labels: list[str], path: str) -> str:
+    """Each later CSV's returns against the first's, one point per episode, with the diagonal; writes ``path``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = shared_rows(csvs)
+    base = csvs[0].values(keys)
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    everything = np.concatenate([c.values(keys) for c in csvs])
+    low, high = float(everything.min()), float(everything.max())
+    pad = 0.05 * (high - low or 1.0)
+    ax.plot([low - pad, high + pad], [low - pad, high + pad], color="0.6", linestyle="--", linewidth=1,
+            label="equal return")
+    for label, csv in zip(labels[1:], csvs[1:], strict=True):
+        ax.scatter(base, csv.values(keys), s=18, alpha=0.8, label=label)
+    ax.set_xlabel(f"{labels[0]}: return per episode")
+    ax.set_ylabel("return on the same episode")
+    ax.set_xlim(low - pad, high + pad)
+    ax.set_ylim(low - pad, high + pad)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(f"the same {len(keys)} episodes", fontsize=10)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m lnnmpc.train.paired", description=__doc__.split("\n")[0])
+    p.add_argument("csvs", nargs="+", help="CSVs of `cli eval` with the same episodes; the first is the reference")
+    p.add_argument("--labels", nargs="+", default=None, help="one label per CSV (default: the file names)")
+    p.add_argument("--plot", default=None, metavar="PNG", help="also draw each CSV's returns against the first's")
+    p.add_argument("--common", action="store_true", help="compare the (seed, episode) rows all CSVs hold (e.g. "
+                   "10 episodes against 20 of the same seed: the first 10 are the same episodes)")
+    args = p.parse_args(argv)
+
+    def compare() -> str:
+        if len(args.csvs) < 2:
+            raise ConfigError(f"give at least two CSVs to compare, got {len(args.csvs)}")
+        labels = args.labels or [os.path.basename(c) for c in args.csvs]
+        if len(labels) != len(args.csvs):
+            raise ConfigError(f"{len(labels)} labels for {len(args.csvs)} CSVs: give one label per CSV")
+        csvs = [read_episode_returns(c) for c in args.csvs]
+        for note in dict.fromkeys(n for other in csvs[1:] for n in check_same_episodes(csvs[0], other, args.common)):
+            sys.stderr.write(note + "\n")
+        if not shared_rows(csvs):
+            raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
+        text = paired_table(paired_rows(csvs, labels))
+        if args.plot:
+            text += f"\n\nwrote {plot_paired(csvs, labels, args.plot)}"
+        return text
+
+    return command_status(compare)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

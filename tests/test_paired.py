@@ -1,0 +1,76 @@
+"""``python -m lnnmpc.train.paired``: evaluations of several policies on the same episodes, compared row by row."""
+
+from __future__ import annotations
+
+import os
+
+from lnnmpc.train import runfolder
+from lnnmpc.train.paired import main
+
+FIELDS = ["env_step", "seed", "episode", "return", "backend", "obs", "actor", "planner", "eval_seed"]
+
+
+def _csv(path, returns, *, seeds=1, backend="mjx", eval_seed=0, step=200, reverse=False, fields=FIELDS):
+    """A ``cli eval`` CSV: ``returns`` in (seed, episode) order, written in reverse row order with ``reverse``."""
+    episodes = len(returns) // seeds
+    rows = [{"env_step": step, "seed": i // episodes, "episode": i % episodes, "return": r, "backend": backend,
+             "obs": "clean", "actor": "planner", "planner": "", "eval_seed": eval_seed}
+            for i, r in enumerate(returns)]
+    runfolder.write_csv(str(path), fields, [{k: row[k] for k in fields} for row in (rows[::-1] if reverse else rows)])
+    return str(path)
+
+
+def test_paired_differences_against_a_hand_computation(tmp_path, capsys):
+    """A = 10, 20, 30, 40 and B = 12, 19, 35, 44 on the same 2 seeds x 2 episodes, B's rows in reverse order:
+    differences 2, -1, 5, 4, so +2.5 with standard error sqrt(7) / 2 = 1.32, 3 more and 1 less; correlation
+    560 / sqrt(500 x 641) = 0.989; A's mean 25.0 ± sqrt(125) = 11.2."""
+    a = _csv(tmp_path / "a.csv", [10, 20, 30, 40], seeds=2)
+    b = _csv(tmp_path / "b.csv", [12, 19, 35, 44], seeds=2, reverse=True)
+    plot = tmp_path / "fig" / "paired.png"
+    assert main([a, b, "--labels", "A", "B", "--plot", str(plot)]) == 0
+    out = capsys.readouterr().out
+    assert "| A | 4 | 25.0 ± 11.2 |  |  |  |" in out
+    assert "| B | 4 | 27.5 ± 12.7 | +2.5 ± 1.3 | 3 / 1 | 0.99 |" in out
+    assert "minus A (± standard error)" in out and os.path.getsize(plot) > 10_000
+
+
+def test_paired_refuses_csvs_of_other_episodes_naming_why(tmp_path, capsys):
+    a = _csv(tmp_path / "a.csv", [1, 2, 3])
+    cases = [
+        (_csv(tmp_path / "seed1.csv", [1, 2, 3], eval_seed=1), "eval_seed '1' against '0'"),
+        (_csv(tmp_path / "dmc.csv", [1, 2, 3], backend="dm_control"), "backend 'dm_control' against 'mjx'"),
+        (_csv(tmp_path / "two.csv", [1, 2]), "only in the first [(0, 2)], only in 'two.csv' none"),
+    ]
+    train = tmp_path / "eval.csv"
+    runfolder.write_csv(str(train), ["env_step", "seed", "episode", "return"],
+                        [{"env_step": 10, "seed": 0, "episode": e, "return": 1.0} for e in range(3)])
+    cases.append((str(train), "is not a CSV of `cli eval` (no backend, obs column"))
+    both = tmp_path / "both.csv"
+    runfolder.write_csv(str(both), FIELDS, [{**r, "env_step": s} for s in (10, 20) for r in runfolder.read_csv(a)])
+    cases.append((str(both), "holds evaluations of several checkpoints (10, 20): one per CSV"))
+    for other, reason in cases:
+        assert main([a, other]) == 2
+        assert reason in capsys.readouterr().err, other
+    assert main([a]) == 2 and "give at least two CSVs to compare, got 1" in capsys.readouterr().err
+    assert main([a, a, "--labels", "only"]) == 2
+    assert "1 labels for 2 CSVs: give one label per CSV" in capsys.readouterr().err
+    assert main([a, str(tmp_path / "missing.csv")]) == 2
+    assert "no evaluation CSV at" in capsys.readouterr().err
+
+
+def test_common_compares_the_rows_both_hold_and_old_csvs_are_noted(tmp_path, capsys):
+    """An evaluation of 2 episodes against one of 4 with the same seed (its first 2 episodes are the same ones):
+    refused as it is, compared over the 2 shared rows with --common. A CSV written before eval_seed was recorded
+    passes with a note."""
+    long = _csv(tmp_path / "long.csv", [100, 200, 300, 400])
+    short = _csv(tmp_path / "short.csv", [110, 190], fields=FIELDS[:-1])
+    assert main([long, short]) == 2
+    assert "compare the rows they share with --common" in capsys.readouterr().err
+    assert main([long, short, "--common", "--labels", "20", "10"]) == 0
+    out, err = capsys.readouterr()
+    assert "| 20 | 2 | 150.0 ± 50.0 |  |  |  |" in out  # 100 and 200
+    assert "| 10 | 2 | 150.0 ± 40.0 | +0.0 ± 10.0 | 1 / 1 | 1.00 |" in out  # 110 and 190: +10 and -10
+    assert f"note: {short!r} records no eval_seed" in err
+    apart = _csv(tmp_path / "apart.csv", [5], seeds=1, reverse=False, step=200)
+    runfolder.write_csv(apart, FIELDS, [{**runfolder.read_csv(apart)[0], "seed": 3}])
+    assert main([long, apart, "--common"]) == 2 and "share no (seed, episode) row" in capsys.readouterr().err
