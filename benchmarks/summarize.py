@@ -11,6 +11,8 @@ import json
 import os
 import sys
 
+from lnnmpc.train.png import save_png
+
 RESULTS = os.path.join(os.path.dirname(__file__), "results")
 
 
@@ -104,7 +106,7 @@ def plot_env_throughput(path: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_png(fig, path, dpi=120)
 
 
 def main() -> None:

@@ -274,7 +274,7 @@ def test_reports_without_plots_rewrite_only_the_summary(tmp_path):
     runfolder.write_csv(os.path.join(a, "train.csv"), list(rows[0]), rows)
     report.write_reports(a, {"env_steps": 20000, "train_seconds": 60.0})
     figures = [os.path.join(a, name) for name in ("curve.png", "training.png")]
-    assert all(os.path.getsize(f) > 10_000 for f in figures)
+    assert all(os.path.getsize(f) > 5_000 for f in figures)  # palette PNGs of a few points
     assert "Training time (this machine, incl. compilation): 1.0 min." in open(os.path.join(a, "summary.md")).read()
     for f in figures:
         os.remove(f)

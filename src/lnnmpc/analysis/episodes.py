@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from lnnmpc.train import runfolder
+from lnnmpc.train.png import save_png
 
 EpisodeStats = Callable[[np.ndarray], dict[str, np.ndarray]]
 
@@ -102,7 +103,7 @@ def plot_traces(path: str, traces: list[list[Trace]], title: str) -> None:
                 ax.set_xlabel("agent step", fontsize=8)
     fig.suptitle(title, fontsize=10, wrap=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_png(fig, path, dpi=110)
     plt.close(fig)
 
 

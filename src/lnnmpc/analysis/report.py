@@ -29,6 +29,7 @@ import numpy as np
 
 from lnnmpc.analysis import metrics
 from lnnmpc.train import runfolder
+from lnnmpc.train.png import save_png
 
 STATE_NAMES = {"cartpole": ("cart position", "pole cos", "pole sin", "cart velocity", "pole angular velocity")}
 
@@ -106,7 +107,7 @@ def plot_correlation(path: str, true: np.ndarray, predicted: np.ndarray, names: 
     axes[0, 0].set_ylabel("ridge prediction from [z, z²]")
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_png(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -124,7 +125,7 @@ def plot_umap(path: str, latent: np.ndarray, states: np.ndarray, velocities: np.
             fig.colorbar(points, ax=axes[row, col])
     fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_png(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -137,7 +138,7 @@ def plot_series(path: str, x: list[float], y: list[float], yerr: list[float], xl
     axes[0, 0].set_xlabel(xlabel)
     axes[0, 0].set_ylabel(ylabel)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_png(fig, path, dpi=110)
     plt.close(fig)
 
 
@@ -155,7 +156,7 @@ def plot_predictions(path: str, targets: np.ndarray, one_step: np.ndarray, rollo
     axes[1, 0].set_title("k-step rollouts (dashed) vs observations")
     axes[0, 0].legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_png(fig, path, dpi=110)
     plt.close(fig)
 
 

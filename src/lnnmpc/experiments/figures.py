@@ -18,7 +18,6 @@ a 200K result; cells not yet run are left out.
 
 from __future__ import annotations
 
-import os
 import re
 
 import numpy as np
@@ -26,7 +25,7 @@ import numpy as np
 from lnnmpc.experiments.aggregate import newest_eval, read_returns
 from lnnmpc.experiments.grid import RunSpec, Study
 from lnnmpc.experiments.thesis import AGENT_ORDER
-from lnnmpc.train import runfolder
+from lnnmpc.train.png import save_png
 
 
 def _noise(tag: str) -> float | None:
@@ -132,8 +131,7 @@ def write_study_figure(study: Study, specs: list[RunSpec], rows: list[dict], out
         fig.suptitle(f"{study.source} ({study.name}): " + ("ours (solid), the thesis's (dashed / black ticks)"
                      if thesis else "ours (the thesis prints no numbers for it)"), fontsize=10)
     fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
-    runfolder.write_atomic(out, lambda f: fig.savefig(f, format="png", dpi=110), binary=True)
+    save_png(fig, out, dpi=110)
     plt.close(fig)
     return out
 

@@ -35,6 +35,7 @@ import numpy as np
 from lnnmpc.train import runfolder
 from lnnmpc.train.compat import agent_config_changes
 from lnnmpc.train.config import RESUMABLE_CHANGES, ConfigError, TrainConfig, command_status
+from lnnmpc.train.png import save_png
 from lnnmpc.train.references import references
 from lnnmpc.train.report import column_rows, eval_table, training_panels
 
@@ -255,7 +256,7 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None,
     for each in axes.flat:  # 25K, 50K, ...: full step counts run into each other on narrow panels
         each.xaxis.set_major_formatter(lambda x, _: f"{x / 1000:g}K" if x else "0")
     fig.tight_layout()
-    fig.savefig(out, dpi=110)
+    save_png(fig, out, dpi=110)
     plt.close(fig)
     table_path = os.path.splitext(out)[0] + ".csv"
     runfolder.write_csv(table_path, list(rows[0]), rows)

@@ -30,6 +30,7 @@ import numpy as np
 
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, command_status
+from lnnmpc.train.png import save_png
 
 # Columns that must agree for two CSVs to hold the same episodes (eval_seed: CSVs written since it is recorded)
 _SAME_EPISODES = ("backend", "obs", "eval_seed")
@@ -164,8 +165,7 @@ def plot_paired(csvs: list[EpisodeReturns], labels: list[str], path: str) -> str
     ax.legend(fontsize=8)
     ax.set_title(f"the same {len(keys)} episodes", fontsize=10)
     fig.tight_layout()
-    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=120)
+    save_png(fig, path, dpi=120)
     plt.close(fig)
     return path
 

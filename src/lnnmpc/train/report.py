@@ -15,6 +15,7 @@ import numpy as np
 
 from lnnmpc.train import provenance, runfolder
 from lnnmpc.train.checkpoint import all_steps
+from lnnmpc.train.png import save_png
 from lnnmpc.train.references import references
 
 
@@ -138,7 +139,7 @@ def plot_curve(run: str, table: list[dict], refs: dict[str, float], title: str, 
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")
     fig.tight_layout()
-    fig.savefig(os.path.join(run, "curve.png"), dpi=110)
+    save_png(fig, os.path.join(run, "curve.png"), dpi=110)
     plt.close(fig)
 
 
@@ -217,7 +218,7 @@ def plot_training(run: str, rows: list[dict], title: str, eval_rows: list[dict] 
     fig.suptitle(f"{title}: train.csv (per finished episode)", fontsize=10)
     fig.supxlabel("environment steps", fontsize=9)
     fig.tight_layout()
-    fig.savefig(os.path.join(run, "training.png"), dpi=90)
+    save_png(fig, os.path.join(run, "training.png"), dpi=90)
     plt.close(fig)
     return list(panels)
 
