@@ -106,7 +106,7 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                    "learn_episode_starts": True, "latent_head": "simnorm", "latent_size": 256,
                    "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1},
         measured=("acrobot-swingup: 578.3 / 346.4 / 425.9 / 426.6 at 200K on master seeds 0-3 (one seed each; "
-                  "444.3 over the four, dm_control 507.1 / 388.5 on seeds 0 / 3), RESULTS.md [72], [73]: the best "
+                  "444.3 over the four; dm_control 410.3), RESULTS.md [72], [73]: the best "
                   "acrobot line measured, far under the thesis's 883; TD-MPC2 278.1 here. On one set of 20 episodes "
                   "the four final policies score 352.5 ([73]). Walker's training window and latent head, model "
                   "losses 6 steps deep, pink exploration noise ([55], [64]), and the learning rate decayed to 0.1 x "
