@@ -16,7 +16,9 @@ which it returns more and less, and the correlation of the two CSVs' returns. ``
 against the first's, episode by episode. CSVs that do not hold the same episodes are refused with the reason:
 another backend, corruption or eval seed, other (seed, episode) rows, several checkpoints in one file, or the
 training's ``eval.csv`` (each of its evaluations plays episodes of a key of its own). ``--common`` compares the
-rows all CSVs hold instead: an evaluation's first k episodes are those of a longer one with the same seed.
+rows all CSVs hold instead: an evaluation's first k episodes start as those of a longer one with the same seed
+(the same initial states and random draws; a batch of another size can round differently, and a chaotic
+episode amplifies that, so one policy's two evaluations of an episode may part).
 """
 
 from __future__ import annotations
@@ -176,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--labels", nargs="+", default=None, help="one label per CSV (default: the file names)")
     p.add_argument("--plot", default=None, metavar="PNG", help="also draw each CSV's returns against the first's")
     p.add_argument("--common", action="store_true", help="compare the (seed, episode) rows all CSVs hold (e.g. "
-                   "10 episodes against 20 of the same seed: the first 10 are the same episodes)")
+                   "10 episodes against 20 of the same seed: the first 10 start alike)")
     args = p.parse_args(argv)
 
     def compare() -> str:
