@@ -45,7 +45,6 @@ class EpisodeReturns:
     path: str
     returns: dict[tuple[int, int], float]
     episodes_from: dict[str, str]  # backend, obs and eval_seed (absent in CSVs written before it was recorded)
-    env_step: str
 
     def values(self, keys: list[tuple[int, int]]) -> np.ndarray:
         """The returns of rows ``keys``, in that order (n,)."""
@@ -77,12 +76,12 @@ def read_episode_returns(path: str) -> EpisodeReturns:
     for c, value in episodes_from.items():
         if any(r[c] != value for r in rows):
             raise ConfigError(f"{path!r} mixes several values of {c}")
-    return EpisodeReturns(path=path, returns=returns, episodes_from=episodes_from, env_step=steps[0])
+    return EpisodeReturns(path=path, returns=returns, episodes_from=episodes_from)
 
 
-def check_same_episodes(first: EpisodeReturns, other: EpisodeReturns, common: bool = False) -> list[str]:
+def check_same_episodes(first: EpisodeReturns, other: EpisodeReturns, common: bool = False) -> None:
     """Raises ConfigError where ``other`` does not hold ``first``'s episodes (with ``common``, where the two share
-    no (seed, episode) row); returns notes (an eval seed that either CSV does not record, so cannot be checked)."""
+    no (seed, episode) row). An eval seed that either CSV does not record is not checked."""
     for c in _SAME_EPISODES:
         a, b = first.episodes_from.get(c), other.episodes_from.get(c)
         if a is not None and b is not None and a != b:
@@ -97,8 +96,6 @@ def check_same_episodes(first: EpisodeReturns, other: EpisodeReturns, common: bo
                           f"{only_first[:4] or 'none'}, only in {os.path.basename(other.path)!r} "
                           f"{only_other[:4] or 'none'} (evaluate both with the same --episodes, or compare the "
                           "rows they share with --common)")
-    return [f"note: {csv.path!r} records no eval_seed (written before it was): taken to be the others'"
-            for csv in (first, other) if "eval_seed" not in csv.episodes_from]
 
 
 def shared_rows(csvs: list[EpisodeReturns]) -> list[tuple[int, int]]:
@@ -188,8 +185,12 @@ def main(argv: list[str] | None = None) -> int:
         if len(labels) != len(args.csvs):
             raise ConfigError(f"{len(labels)} labels for {len(args.csvs)} CSVs: give one label per CSV")
         csvs = [read_episode_returns(c) for c in args.csvs]
-        for note in dict.fromkeys(n for other in csvs[1:] for n in check_same_episodes(csvs[0], other, args.common)):
-            sys.stderr.write(note + "\n")
+        for other in csvs[1:]:
+            check_same_episodes(csvs[0], other, args.common)
+        for csv in csvs:
+            if "eval_seed" not in csv.episodes_from:
+                sys.stderr.write(f"note: {csv.path!r} records no eval_seed (written before it was): taken to be the "
+                                 "others'\n")
         if not shared_rows(csvs):
             raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
         text = paired_table(paired_rows(csvs, labels))
