@@ -53,10 +53,13 @@ def test_colored_noise_has_unit_variance_and_the_asked_spectrum():
 
 
 def test_loop_draws_fresh_noise_at_episode_starts_and_hands_the_step_sample_to_the_agent():
+    """... and a training chunk makes ``updates_per_step`` updates per agent step of each environment (each update
+    counted here in place of learning, so that only acting is compiled)."""
     config = TrainConfig(task="cartpole-swingup", agent="tdmpc2", small=True, envs=2, steps=1000, seed_steps=0,
-                         replay_capacity=2100, compile_cache="", explore_noise_beta=1.0)
+                         replay_capacity=2100, compile_cache="", explore_noise_beta=1.0, updates_per_step=3)
     loop = build_loop(config)
-    assert loop.config.explore_noise_beta == 1.0
+    assert loop.config.explore_noise_beta == 1.0 and loop.config.updates_per_step == 3
+    loop._update = lambda ts, key: (ts.replace(agent=ts.agent.replace(updates=ts.agent.updates + 1)), {})
     ts = jax.jit(loop.init)(jax.random.key(0))
     assert isinstance(ts, ExploringTrainState) and ts.explore_noise.shape == (2, 500, 1)
     ts = ts.replace(env=ts.env.replace(t=jnp.array([0, 7], jnp.int32)))  # env 0 starts an episode, env 1 is at t=7
@@ -68,6 +71,7 @@ def test_loop_draws_fresh_noise_at_episode_starts_and_hands_the_step_sample_to_t
     # a training chunk runs with it (the agent's act takes the samples), and a loop without it keeps TrainState
     out, metrics = jax.jit(lambda t: loop.train_chunk(t, 2))(ts)
     assert isinstance(out, ExploringTrainState) and np.isfinite(np.asarray(metrics["reward"])).all()
+    assert int(out.agent.updates) - int(ts.agent.updates) == 2 * 2 * 3  # iterations x environments x updates
     plain = build_loop(TrainConfig(task="cartpole-swingup", agent="tdmpc2", small=True, envs=2, steps=1000,
                                    seed_steps=0, replay_capacity=2100, compile_cache=""))
     assert type(jax.eval_shape(plain.init, jax.random.key(0))) is TrainState

@@ -48,6 +48,7 @@ def test_parse_obs_and_overrides():
     ({"wandb": "my project"}, "wandb project 'my project' must be letters, digits, '.', '_' or '-'"),
     ({"compile_ahead": "yes"}, "compile_ahead='yes'; allowed: auto, on, off"),
     ({"eval_prior": "yes"}, "eval_prior must be True or False, got 'yes'"),
+    ({"updates_per_step": 0}, "updates_per_step must be an integer >= 1, got 0"),
 ])
 def test_bad_values_are_named_with_the_allowed_ones(values, message):
     with pytest.raises(ConfigError) as error:
@@ -67,6 +68,14 @@ def test_validation_builds_environments_and_agent_without_compiling(tmp_path):
         validate(TrainConfig(**{**small, "out": str(blocker / "run")}))
     with pytest.raises(ConfigError, match="is not a run folder"):
         validate(resume=str(tmp_path))
+
+
+def test_updates_per_step_reaches_the_loop_and_the_burst_after_the_seed_phase(tmp_path):
+    """1,000 seed steps of 2 environments (action repeat 2) are 250 iterations, 500 agent steps: 3 updates each."""
+    setup = validate(TrainConfig(task="cartpole-balance", small=True, envs=2, seed_steps=1000, updates_per_step=3,
+                                 out=str(tmp_path / "run")), create=False)
+    assert setup.seed_iterations == 250 and setup.burst_updates == 1500
+    assert setup.loop.config.updates_per_step == 3
 
 
 def test_devices_for_seeds():

@@ -62,6 +62,8 @@ def _train_parser(sub) -> None:
     p.add_argument("--checkpoint-every", type=int, help="environment steps between checkpoints (default 10000)")
     p.add_argument("--keep-checkpoints", type=int, help="newest checkpoints kept (default 3)")
     p.add_argument("--batch-size", type=int, help="sequences per update (default 256)")
+    p.add_argument("--updates-per-step", type=int,
+                   help="updates per agent step, the update-to-data ratio (default 1, TD-MPC2's)")
     p.add_argument("--physics", help=f"one of: {', '.join(envs.PROFILES)} (default fast)")
     p.add_argument("--seed", type=int, help="master seed (default 0)")
     p.add_argument("--small", action="store_true", help="tiny networks and planner (CPU smoke runs)")
@@ -197,6 +199,7 @@ def describe_setup(setup) -> str:
             f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps (ends at "
             f"{setup.final_env_steps:,} env steps), replay "
             f"{loop.config.replay_capacity:,} per env, batch {loop.config.batch_size}, "
+            f"{loop.config.updates_per_step} update(s) per agent step, "
             f"{setup.num_devices} device(s)\n")
 
 

@@ -151,6 +151,11 @@ class TrainConfig:
         (``experiments/results/random-exploration-sparse-cpu``), so the replay holds rewarded steps before
         the first update. An episode running when the seed phase ends keeps its sequence as its exploration noise
         (when ``explore_noise_beta`` is set).
+      updates_per_step: updates per agent step, the update-to-data ratio (1: TD-MPC2's, one update per agent
+        step). k > 1 makes k updates per agent step of every environment, and k per seed-phase agent step in the
+        burst after the seed phase: k times the learning per environment step at k times the update cost. Updates
+        are counted per seed (the agent's ``lr_decay_begin`` / ``lr_decay_end`` are in updates, so they come k
+        times sooner in environment steps).
       checkpoint_every, keep_checkpoints: checkpoint cadence (also at the end and on Ctrl-C) and how many to keep.
       model_size, small, batch_size, physics, replay_capacity, overrides: agent/loop settings; ``overrides`` goes
         to ``make_agent(..., overrides=...)`` (keys as the agent defines them).
@@ -180,6 +185,7 @@ class TrainConfig:
     checkpoint_every: int = 10_000
     keep_checkpoints: int = 3
     batch_size: int = 256
+    updates_per_step: int = 1
     physics: str = "fast"
     seed: int = 0
     small: bool = False
@@ -210,7 +216,7 @@ class TrainConfig:
         if self.model_size not in (1, 5):
             raise ConfigError(f"model_size must be 1 or 5 (million parameters), got {self.model_size!r}")
         for name in ("seeds", "steps", "envs", "eval_every", "eval_episodes", "checkpoint_every",
-                     "keep_checkpoints", "batch_size"):
+                     "keep_checkpoints", "batch_size", "updates_per_step"):
             require_int(name, getattr(self, name), 1)
         require_int("seed_steps", self.seed_steps, 0)
         require_int("seed", self.seed, 0)

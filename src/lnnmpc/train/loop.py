@@ -58,6 +58,10 @@ class LoopConfig:
     ``seed_noise_beta``: None: :meth:`seed_chunk` acts uniformly at random. β >= 0: it acts with such colored
     sequences (unit std, drawn at each episode start, clipped to [-1, 1]); an episode running when the seed phase
     ends keeps its sequence (as its exploration noise, with ``explore_noise_beta``).
+
+    ``updates_per_step``: updates per agent step (the update-to-data ratio; 1 = TD-MPC2's): :meth:`train_chunk`
+    makes ``num_envs * updates_per_step`` updates per iteration, and the trainer's burst after the seed phase
+    ``updates_per_step`` per seed-phase agent step.
     """
 
     num_envs: int = 1
@@ -68,9 +72,10 @@ class LoopConfig:
     eval_prior: bool = False
     explore_noise_beta: float | None = None
     seed_noise_beta: float | None = None
+    updates_per_step: int = 1
 
     def __post_init__(self):
-        for name in ("num_envs", "batch_size", "replay_capacity", "eval_episodes"):
+        for name in ("num_envs", "batch_size", "replay_capacity", "eval_episodes", "updates_per_step"):
             value = getattr(self, name)
             if not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
@@ -232,8 +237,10 @@ class TrainingLoop:
         return jax.lax.scan(body, ts, None, length=num_updates)
 
     def train_chunk(self, ts: TrainState, length: int) -> tuple[TrainState, dict]:
-        """``length`` iterations of planning with exploration, an environment step and num_envs updates."""
+        """``length`` iterations of planning with exploration, an environment step and ``num_envs *
+        updates_per_step`` updates."""
         m = self.config.num_envs
+        num_updates = m * self.config.updates_per_step
 
         def body(ts, _):
             key, k_act, k_env, k_update = jax.random.split(ts.key, 4)
@@ -244,7 +251,8 @@ class TrainingLoop:
                                                                     first_step=f, explore_noise=n))
             action, next_carry = act(carry, ts.env.obs, ts.env.dt, jax.random.split(k_act, m), first, noise)
             ts, out = self._env_step(ts.replace(key=key), action, carry, next_carry, k_env)
-            ts, metrics = jax.lax.scan(lambda ts, k: self._update(ts, k), ts, jax.random.split(k_update, m))
+            ts, metrics = jax.lax.scan(lambda ts, k: self._update(ts, k), ts,
+                                       jax.random.split(k_update, num_updates))
             return ts, {**out, **jax.tree_util.tree_map(lambda x: x[-1], metrics)}
 
         return jax.lax.scan(body, ts, None, length=length)

@@ -56,6 +56,12 @@ class Setup:
         return schedule.seed_iterations(self.config.seed_steps, self.per_iteration)
 
     @property
+    def burst_updates(self) -> int:
+        """Updates of the burst after the seed phase: ``updates_per_step`` per seed-phase agent step of each
+        environment, as a training iteration makes."""
+        return self.seed_iterations * self.config.envs * self.config.updates_per_step
+
+    @property
     def chunk(self) -> int:
         """Iterations per training chunk (:func:`schedule.chunk_length`: equal chunks that end the run at its
         budget). Fixed by the configuration, so a resumed run with the same budget chunks identically."""
@@ -114,7 +120,7 @@ def build_loop(config: TrainConfig) -> TrainingLoop:
     loop_config = LoopConfig(num_envs=config.envs, batch_size=config.batch_size, replay_capacity=capacity,
                              eval_episodes=config.eval_episodes, guard_empty_replay=guard,
                              eval_prior=config.eval_prior, explore_noise_beta=config.explore_noise_beta,
-                             seed_noise_beta=config.seed_noise_beta)
+                             seed_noise_beta=config.seed_noise_beta, updates_per_step=config.updates_per_step)
     try:
         return TrainingLoop(agent, env, eval_env, loop_config)
     except ValueError as error:  # eval_prior with an agent that has no policy prior

@@ -104,10 +104,10 @@ class _Run:
         seconds, and when it was ready after this phase began, as each compilation ends.
         ``keys``: (seeds,) keys, placed; ``state``: the training state or its ``placement.abstract`` shapes (the
         programs need its shapes and placement only, so nothing waits for the state to be built)."""
-        c, names = self.config, [("train_chunk", self.setup.chunk)]
+        names = [("train_chunk", self.setup.chunk)]
         seed_iterations = self.setup.seed_iterations
         if not self.counters["seeded"] and seed_iterations:
-            names += [("seed_chunk", seed_iterations), ("update_burst", seed_iterations * c.envs)]
+            names += [("seed_chunk", seed_iterations), ("update_burst", self.setup.burst_updates)]
         jobs = [(name, self._chunk_program(name, length), (state,)) for name, length in names]
         jobs += [("init", self.init, (keys,))] if initialise else []
         jobs += [("finite", self.finite, (state.agent,)), ("evaluate", self.evaluate, (state.agent, keys))]
@@ -203,7 +203,7 @@ class _Run:
                     rows = self._account(out)
                     timed["env_steps"] = n["env_steps"]
                 with self._timed("update_burst"):
-                    ts, metrics = self.chunk_fn("update_burst", seed_iterations * c.envs)(ts)
+                    ts, metrics = self.chunk_fn("update_burst", self.setup.burst_updates)(ts)
                     jax.block_until_ready(ts)
                 self._commit(ts, rows, metrics, first_step=None)
             n["seeded"] = True
