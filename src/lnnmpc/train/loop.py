@@ -86,6 +86,11 @@ class LoopConfig:
             if getattr(self, name) is not None and not getattr(self, name) >= 0:
                 raise ValueError(f"{name} must be >= 0 or None, got {getattr(self, name)!r}")
 
+    @property
+    def updates_per_iteration(self) -> int:
+        """Updates per loop iteration: ``updates_per_step`` for each of the ``num_envs`` agent steps."""
+        return self.num_envs * self.updates_per_step
+
 
 def windows_after_seed_phase(seed_iterations: int, episode_length: int, sequence_length: int,
                              capacity: int) -> bool:
@@ -239,8 +244,7 @@ class TrainingLoop:
     def train_chunk(self, ts: TrainState, length: int) -> tuple[TrainState, dict]:
         """``length`` iterations of planning with exploration, an environment step and ``num_envs *
         updates_per_step`` updates."""
-        m = self.config.num_envs
-        num_updates = m * self.config.updates_per_step
+        m, num_updates = self.config.num_envs, self.config.updates_per_iteration
 
         def body(ts, _):
             key, k_act, k_env, k_update = jax.random.split(ts.key, 4)

@@ -57,9 +57,9 @@ class Setup:
 
     @property
     def burst_updates(self) -> int:
-        """Updates of the burst after the seed phase: ``updates_per_step`` per seed-phase agent step of each
-        environment, as a training iteration makes."""
-        return self.seed_iterations * self.config.envs * self.config.updates_per_step
+        """Updates of the burst after the seed phase: as many per seed-phase iteration as a training iteration
+        makes (``LoopConfig.updates_per_iteration``)."""
+        return self.seed_iterations * self.loop.config.updates_per_iteration
 
     @property
     def chunk(self) -> int:
