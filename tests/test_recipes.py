@@ -16,8 +16,12 @@ from lnnmpc.train.recipes import RECIPES, recipe_values
 from lnnmpc.train.report import eval_table
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-LEARNING_FIELDS = ("task", "agent", "envs", "obs", "explore_noise_beta", "seed_noise_beta", "seed_steps", "batch_size",
-                   "physics", "model_size")
+# what a run is and how it is kept, not what it learns (the replay's capacity follows the step budget); every other
+# TrainConfig field (a new one too) must equal the recipe's in the runs that measured it (``overrides`` on its own)
+RUN_FIELDS = {"seeds", "steps", "seed", "replay_capacity", "eval_obs", "eval_every", "eval_episodes", "eval_prior",
+              "eval_policies", "checkpoint_every", "keep_checkpoints", "devices", "runs_dir", "name", "out",
+              "tensorboard", "wandb", "compile_cache", "compile_ahead", "overrides"}
+LEARNING_FIELDS = tuple(f.name for f in dataclasses.fields(TrainConfig) if f.name not in RUN_FIELDS)
 
 
 def _final_mean(run: str) -> float:
