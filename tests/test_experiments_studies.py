@@ -500,6 +500,48 @@ def test_device_batch_does_not_relaunch_a_run_that_reached_its_steps(tmp_path):
     assert (batch / "done.log").read_text().count("launched") == 2
 
 
+def test_device_batch_stops_a_job_at_its_limit_unless_extend_moves_it(tmp_path):
+    """Each job gets SIGTERM once its SECONDS have passed and then records exit 124, as under ``timeout -s TERM``
+    (a training run saves a checkpoint and exits 0 on it); ``extend SECONDS NAME`` moves a running job's limit,
+    so that job runs past the first limit to its own end (exit 0); the report gives a running job's time left.
+    Bad seconds, a job that is not running and a batch with nothing running are refused, naming why."""
+    import subprocess
+    import time
+
+    body = ('trap \'echo termed; exit 0\' TERM; '  # the trainer's SIGTERM: checkpoint, exit 0
+            'end=$(($(date +%s) + 20)); case "$*" in *runs/batch/kept*) end=$(($(date +%s) + 3));; esac; '
+            'while [ "$(date +%s)" -lt "$end" ]; do sleep 0.05; done; echo reached its end')
+    env = _fake_gpu_machine(tmp_path, 1, body, DEADLINE_POLL="0.05")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("kept  --task cartpole-balance\ncut  --task cartpole-balance\n")
+    run = lambda *args: subprocess.run(["bash", DEVICE_BATCH, *args], capture_output=True, text=True, timeout=60,
+                                       env=env, cwd=tmp_path)
+    batch = tmp_path / "runs" / "batch"
+    assert run("start", str(jobs), "2", "0").returncode == 0  # both stopped ~2 s after their launch ...
+    moved = run("extend", "30", "kept")  # ... unless moved: kept's limit 30 s later, cut's as it was
+    assert moved.returncode == 0, moved.stderr
+    assert moved.stdout.startswith("kept: limit moved by 30 s: SIGTERM in ") and "cut" not in moved.stdout
+    assert 29 <= int(moved.stdout.split("SIGTERM in ")[1].split()[0]) <= 32
+    report = run("wait", "0").stdout
+    assert "running: SIGTERM in " in report and "unless extended" in report
+    refused = run("extend", "ten")
+    assert refused.returncode == 2 and "SECONDS must be a whole number of seconds (negative: sooner), not 'ten'" in (
+        refused.stderr)
+    refused = run("extend", "5", "nope")
+    assert refused.returncode == 2 and "'nope' is no running job (running: kept cut )" in refused.stderr
+    deadline = time.monotonic() + 30
+    while not all((batch / f"{n}.rc").exists() for n in ("kept", "cut")) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (batch / "cut.rc").read_text() == "124\n" and (batch / "cut.log").read_text() == "termed\n"
+    assert (batch / "kept.rc").read_text() == "0\n" and (batch / "kept.log").read_text() == "reached its end\n"
+    assert float((batch / "kept.seconds").read_text()) >= 2.0  # past the first limit
+    refused = run("extend", "5")
+    assert refused.returncode == 2 and "no job of this machine's batch is running" in refused.stderr
+    refused = run("start", str(jobs), "1.5", "0")  # not a whole number of seconds: nothing launched
+    assert refused.returncode == 2 and "SECONDS must be a whole number of seconds, not '1.5'" in refused.stderr
+    assert (batch / "commands.txt").read_text().count("kept (GPU 0)") == 1
+
+
 def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp_path):
     """``start``'s REPORT counts from the start itself (a relaunch's wait for its earlier process included), and
     while a report waits it packs report.txt and results.tar.gz into $OUT every SNAPSHOT_EVERY seconds, so that a

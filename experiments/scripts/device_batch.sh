@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Several training runs side by side on one GPU machine, over chained calls of the `device` tool.
 #
-#   device_batch.sh start JOBS SECONDS REPORT   launch every job of the file JOBS (each under `timeout -s TERM
-#                                               SECONDS`, in its own session so that it outlives the call), then
+#   device_batch.sh start JOBS SECONDS REPORT   launch every job of the file JOBS (each stopped by SIGTERM after
+#                                               SECONDS, as `timeout -s TERM` would, unless `extend` moves that
+#                                               limit; in its own session so that it outlives the call), then
 #                                               report REPORT seconds after this start began (a relaunch's
 #                                               wait included) or when all have ended; refused
 #                                               while jobs of an earlier start still run (FORCE=1 overrides);
@@ -11,6 +12,9 @@
 #                                               job whose earlier launch of the same line exited 0 (its run
 #                                               reached its steps) is not launched again (RERUN=1 relaunches it)
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
+#   device_batch.sh extend SECONDS [NAME...]    move the SIGTERM limit of the running jobs (or of those NAMEd) by
+#                                               SECONDS (negative: sooner), e.g. when a run trains slower than its
+#                                               limit assumed; the report gives each running job's time left
 #   device_batch.sh after NAME GPU COMMAND...   once the job NAME of the running batch has ended (its exit status
 #                                               is in runs/batch/NAME.rc), run COMMAND on GPU in the background
 #                                               (own session; output in runs/batch/after-NAME.log): a benchmark
@@ -41,7 +45,8 @@
 # each process takes MEM_FRACTION (default 0.9 / the number of jobs on its GPU) of its GPU's memory.
 set -u
 BATCH=runs/batch
-action=${1:?start, wait, after or check}
+SCRIPTS=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
+action=${1:?start, wait, extend, after or check}
 shift
 
 job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines)
@@ -131,6 +136,8 @@ print_report() {
         tr '\r' '\n' <"$log" | grep -v -E '^\s*$|^\[' | tail -1 | cut -c1-150
         local ended=${log%.log}
         [ -f "$ended.seconds" ] && echo "ended (exit $(cat "$ended.rc" 2>/dev/null)) $(cat "$ended.seconds") s after its launch"
+        [ ! -f "$ended.rc" ] && [ -f "$ended.deadline" ] \
+            && echo "running: SIGTERM in $(($(cat "$ended.deadline") - $(date +%s))) s unless extended (device_batch.sh extend)"
         [ -f "$ended.earlier-seconds" ] && echo "earlier launches: $(paste -sd+ "$ended.earlier-seconds") s"
     done
     cat "$BATCH/policies.txt" 2>/dev/null
@@ -150,7 +157,7 @@ pack_out() {
     [ -n "${OUT:-}" ] || return 0
     pack_policies >"$BATCH/policies.txt"
     print_report >"$OUT/.report.txt" 2>&1 && mv "$OUT/.report.txt" "$OUT/report.txt"
-    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock --exclude=policy.npz --exclude='policy-*.npz' -C "$BATCH" . \
+    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock --exclude='*.deadline' --exclude=policy.npz --exclude='policy-*.npz' -C "$BATCH" . \
         && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
 }
 
@@ -200,6 +207,7 @@ start)
     jobs=${1:?JOBS file}
     seconds=${2:?SECONDS}
     report=${3:?REPORT}
+    [[ $seconds =~ ^[0-9]+$ ]] || { echo "start: SECONDS must be a whole number of seconds, not '$seconds'" >&2; exit 2; }
     deadline=$(($(date +%s) + report))  # counted from here: a relaunch's wait for its earlier process included
     mkdir -p "$BATCH" runs/jaxcache
     date +%s >"$BATCH/started"
@@ -261,9 +269,9 @@ start)
         export XLA_PYTHON_CLIENT_MEM_FRACTION=${MEM_FRACTION:-$(awk -v n="$sharing" 'BEGIN {print int(900 / n) / 1000}')}
         command=$(job_command "$name" "$args" "$BATCH" "--compile-cache runs/jaxcache" "")
         if [ "${args%% *}" = experiment ]; then  # a study stopped while training still evaluates what it has
-            command="timeout -s TERM $seconds $command; timeout -s TERM ${EVAL_SECONDS:-300} $command --no-train"
+            command="bash '$SCRIPTS/run_until.sh' $BATCH/$name.deadline $command; timeout -s TERM ${EVAL_SECONDS:-300} $command --no-train"
         else
-            command="timeout -s TERM $seconds $command"
+            command="bash '$SCRIPTS/run_until.sh' $BATCH/$name.deadline $command"
         fi
         # the job's end (NAME.rc, for `after`) and its wall seconds from launch to exit (NAME.seconds: a speed
         # bar's "including compilation", the process's start and exit included)
@@ -273,6 +281,7 @@ start)
             cat "$BATCH/$name.seconds" >>"$BATCH/$name.earlier-seconds" 2>/dev/null
             rm -f "$BATCH/$name.rc" "$BATCH/$name.seconds"
         fi
+        echo $(($(date +%s) + seconds)) >"$BATCH/$name.deadline"  # the SIGTERM limit, which `extend` moves
         visible=$gpu
         [ "$gpu" = all ] && visible=$(seq -s, 0 $((gpus - 1)))
         CUDA_VISIBLE_DEVICES=$visible setsid nohup bash -c "$command" >>"$BATCH/$name.log" 2>&1 </dev/null &
@@ -284,6 +293,32 @@ wait)
     [ -f "$BATCH/started" ] || { echo "no batch on this machine ($BATCH/started is missing): the machine that ran"\
         "'start' went back (idle release) and this is a fresh one; its runs and checkpoints are gone" >&2; exit 1; }
     report_until $(($(date +%s) + ${1:?REPORT}))
+    ;;
+extend)
+    add=${1:?SECONDS}
+    shift
+    [[ $add =~ ^-?[0-9]+$ ]] || { echo "extend: SECONDS must be a whole number of seconds (negative: sooner), not"\
+        "'$add'" >&2; exit 2; }
+    running=$(still_running)
+    names=("$@")
+    [ ${#names[@]} -gt 0 ] || read -ra names <<<"$running"
+    [ ${#names[@]} -gt 0 ] || { echo "extend: no job of this machine's batch is running (each has its" \
+        "$BATCH/<name>.rc)" >&2; exit 2; }
+    status=0
+    for name in "${names[@]}"; do
+        if [[ " $running" != *" $name "* ]]; then
+            echo "extend: '$name' is no running job (running: ${running:-none})" >&2
+            status=2
+        elif [ ! -f "$BATCH/$name.deadline" ]; then
+            echo "extend: $name has no $BATCH/$name.deadline (launched under \`timeout\`): its limit cannot move" >&2
+            status=2
+        else
+            limit=$(($(cat "$BATCH/$name.deadline") + add))
+            echo "$limit" >"$BATCH/$name.deadline.new" && mv "$BATCH/$name.deadline.new" "$BATCH/$name.deadline"
+            echo "$name: limit moved by $add s: SIGTERM in $((limit - $(date +%s))) s"
+        fi
+    done
+    exit $status
     ;;
 after)
     name=${1:?NAME of a job of the running batch}
@@ -333,7 +368,7 @@ check)
     exit $failed
     ;;
 *)
-    echo "unknown action $action (start, wait, after or check)" >&2
+    echo "unknown action $action (start, wait, extend, after or check)" >&2
     exit 2
     ;;
 esac
