@@ -1,0 +1,47 @@
+"""``experiments/scripts/episode_shares.py``: the split of evaluation returns into the initial state's share, the
+policy's and the rest, against sums of squares computed by hand in float64."""
+
+import importlib.util
+import os
+
+import numpy as np
+import pytest
+
+ROOT = os.path.join(os.path.dirname(__file__), "..")
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location(
+        "episode_shares", os.path.join(ROOT, "experiments", "scripts", "episode_shares.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _write(path, returns):
+    path.write_text("env_step,seed,episode,return\n" + "".join(
+        f"100,0,{e},{r}\n" for e, r in reversed(list(enumerate(returns)))))  # episode order restored by the reader
+    return str(path)
+
+
+def test_shares_split_an_additive_table_and_read_csvs_in_episode_order(tmp_path, capsys):
+    script = _script()
+    episode = np.array([700.0, 100.0, 400.0, 300.0])
+    policy = np.array([0.0, 50.0, -20.0])
+    table = policy[:, None] + episode[None, :]  # no interaction: the rest is zero
+    split = script.shares(table)
+    total = ((table - table.mean()) ** 2).sum()
+    assert split["episode"] == pytest.approx(3 * ((episode - episode.mean()) ** 2).sum() / total)
+    assert split["policy"] == pytest.approx(4 * ((policy - policy.mean()) ** 2).sum() / total)
+    assert split["rest"] == pytest.approx(0.0, abs=1e-12)
+    noisy = table + np.array([[5.0, -5.0, 0.0, 0.0], [-5.0, 5.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+    assert script.shares(noisy)["rest"] > 0
+    paths = [_write(tmp_path / f"p{i}.csv", row) for i, row in enumerate(table)]
+    np.testing.assert_array_equal(script.returns_table(paths), table)
+    assert script.main(paths) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("3 policies x 4 episodes: episode share ") and "rest 0.00" in out
+    assert "(mean 425.0)" in out.splitlines()[2]  # the best policy per episode: 750 150 450 350
+    with pytest.raises(ValueError, match=r"different numbers of episodes: \[3, 4\]"):
+        script.returns_table([paths[0], _write(tmp_path / "short.csv", [1.0, 2.0, 3.0])])
+    assert script.main(paths[:1]) == 2
