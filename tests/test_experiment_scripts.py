@@ -1,5 +1,6 @@
-"""``experiments/scripts/episode_shares.py``: the split of evaluation returns into the initial state's share, the
-policy's and the rest, against sums of squares computed by hand in float64."""
+"""Analysis scripts of ``experiments/scripts/``: ``episode_shares.py`` (the split of evaluation returns into the
+initial state's share, the policy's and the rest, against sums of squares computed by hand in float64) and
+``acrobot_hanging_starts.py``'s initial states."""
 
 import importlib.util
 import os
@@ -10,9 +11,8 @@ import pytest
 ROOT = os.path.join(os.path.dirname(__file__), "..")
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location(
-        "episode_shares", os.path.join(ROOT, "experiments", "scripts", "episode_shares.py"))
+def _script(name: str = "episode_shares"):
+    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "experiments", "scripts", f"{name}.py"))
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -45,3 +45,19 @@ def test_shares_split_an_additive_table_and_read_csvs_in_episode_order(tmp_path,
     with pytest.raises(ValueError, match=r"different numbers of episodes: \[3, 4\]"):
         script.returns_table([paths[0], _write(tmp_path / "short.csv", [1.0, 2.0, 3.0])])
     assert script.main(paths[:1]) == 2
+
+
+def test_hanging_starts_hang_at_rest_within_their_noise():
+    import types
+
+    import jax
+
+    init = _script("acrobot_hanging_starts").hanging_init(0.1)
+    fake_env = types.SimpleNamespace(mj_model=types.SimpleNamespace(nv=2))
+    starts = [init(fake_env, key) for key in jax.random.split(jax.random.key(3), 64)]
+    qpos = np.array([np.asarray(q) for q, _ in starts], np.float64)
+    assert all(np.all(np.asarray(v) == 0) and np.shape(v) == (2,) for _, v in starts)  # at rest
+    assert np.all((qpos >= -np.pi) & (qpos < np.pi))  # wrapped as dm_control's angles are drawn
+    down = np.angle(np.exp(1j * (qpos[:, 0] - np.pi)))  # the shoulder's offset from straight down
+    assert np.abs(down).max() < 0.5 and 0.05 < down.std() < 0.2 and np.any(qpos[:, 0] > 0) and np.any(qpos[:, 0] < 0)
+    assert np.abs(qpos[:, 1]).max() < 0.5 and 0.05 < qpos[:, 1].std() < 0.2
