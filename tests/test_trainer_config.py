@@ -49,6 +49,7 @@ def test_parse_obs_and_overrides():
     ({"compile_ahead": "yes"}, "compile_ahead='yes'; allowed: auto, on, off"),
     ({"eval_prior": "yes"}, "eval_prior must be True or False, got 'yes'"),
     ({"updates_per_step": 0}, "updates_per_step must be an integer >= 1, got 0"),
+    ({"action_repeat": 0}, "action_repeat must be an integer >= 1, got 0"),
 ])
 def test_bad_values_are_named_with_the_allowed_ones(values, message):
     with pytest.raises(ConfigError) as error:
@@ -76,6 +77,27 @@ def test_updates_per_step_reaches_the_loop_and_the_burst_after_the_seed_phase(tm
                                  out=str(tmp_path / "run")), create=False)
     assert setup.seed_iterations == 250 and setup.burst_updates == 1500
     assert setup.loop.config.updates_per_step == 3
+
+
+def test_action_repeat_reaches_the_environments_and_counts_agent_steps(tmp_path):
+    """Action repeat 4: the training and evaluation Envs repeat each action 4 control steps (250 agent steps an
+    episode), 1,000 seed steps of 2 environments are 125 iterations (not 250), the configuration's JSON keeps it
+    and an evaluation's Env (``config_env``, as ``eval`` and ``video`` build it) is the training one; the default
+    (2) builds the same Env as ``envs.make`` without it."""
+    import json
+
+    from lnnmpc.train.setup import config_env, shared_env
+
+    config = TrainConfig(task="cartpole-balance", small=True, envs=2, seed_steps=1000, action_repeat=4,
+                         out=str(tmp_path / "run"))
+    setup = validate(config, create=False)
+    assert setup.loop.env.action_repeat == 4 and setup.loop.eval_env is setup.loop.env
+    assert setup.loop.env.episode_length == 250 and setup.seed_iterations == 125 and setup.per_iteration == 8
+    saved = TrainConfig.from_dict(json.loads(json.dumps(config.to_dict())))
+    assert saved.action_repeat == 4 and config_env(saved, saved.eval_obs) is setup.loop.env
+    default = TrainConfig(task="cartpole-balance")
+    assert config_env(default, {}) is shared_env("cartpole-balance", "fast", {})
+    assert config_env(default, {}).action_repeat == 2
 
 
 def test_devices_for_seeds():

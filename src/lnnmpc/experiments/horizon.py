@@ -49,7 +49,7 @@ def evaluate_horizon(run: str, horizon: int, *, obs: str | dict | None = None, e
     policy = load_policy(run, checkpoint)
     config = policy.config
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
-    env = envs.make(config.task, physics=config.physics, **options)
+    env = envs.make(config.task, physics=config.physics, action_repeat=config.action_repeat, **options)
     agent = with_planner(policy.loop.agent, {"plan_horizon": horizon})
     key = jax.random.key(seed)
     returns = mjx_evaluator(agent, env, episodes, config.seeds)(policy.agent_state, key)

@@ -64,6 +64,8 @@ def _train_parser(sub) -> None:
     p.add_argument("--batch-size", type=int, help="sequences per update (default 256)")
     p.add_argument("--updates-per-step", type=int,
                    help="updates per agent step, the update-to-data ratio (default 1, TD-MPC2's)")
+    p.add_argument("--action-repeat", type=int,
+                   help="control steps per agent step, rewards summed (default 2, TD-MPC2's on dm_control)")
     p.add_argument("--physics", help=f"one of: {', '.join(envs.PROFILES)} (default fast)")
     p.add_argument("--seed", type=int, help="master seed (default 0)")
     p.add_argument("--small", action="store_true", help="tiny networks and planner (CPU smoke runs)")
@@ -199,7 +201,7 @@ def describe_setup(setup) -> str:
             f"  chunk {setup.chunk} iterations of {setup.per_iteration} env steps (ends at "
             f"{setup.final_env_steps:,} env steps), replay "
             f"{loop.config.replay_capacity:,} per env, batch {loop.config.batch_size}, "
-            f"{loop.config.updates_per_step} update(s) per agent step, "
+            f"{loop.config.updates_per_step} update(s) per agent step, action repeat {loop.env.action_repeat}, "
             f"{setup.num_devices} device(s)\n")
 
 

@@ -156,6 +156,10 @@ class TrainConfig:
         burst after the seed phase: k times the learning per environment step at k times the update cost. Updates
         are counted per seed (the agent's ``lr_decay_begin`` / ``lr_decay_end`` are in updates, so they come k
         times sooner in environment steps).
+      action_repeat: control steps per agent step (2, TD-MPC2's on dm_control; ``lnnmpc.envs.make``): the agent
+        acts every ``action_repeat`` x the task's control timestep and the rewards in between are summed, so an
+        episode has 1000 / action_repeat agent steps; environment steps (``steps``, ``seed_steps``,
+        ``eval_every``) count control steps either way, while updates and the agent's horizons count agent steps.
       checkpoint_every, keep_checkpoints: checkpoint cadence (also at the end and on Ctrl-C) and how many to keep.
       model_size, small, batch_size, physics, replay_capacity, overrides: agent/loop settings; ``overrides`` goes
         to ``make_agent(..., overrides=...)`` (keys as the agent defines them).
@@ -186,6 +190,7 @@ class TrainConfig:
     keep_checkpoints: int = 3
     batch_size: int = 256
     updates_per_step: int = 1
+    action_repeat: int = 2
     physics: str = "fast"
     seed: int = 0
     small: bool = False
@@ -216,7 +221,7 @@ class TrainConfig:
         if self.model_size not in (1, 5):
             raise ConfigError(f"model_size must be 1 or 5 (million parameters), got {self.model_size!r}")
         for name in ("seeds", "steps", "envs", "eval_every", "eval_episodes", "checkpoint_every",
-                     "keep_checkpoints", "batch_size", "updates_per_step"):
+                     "keep_checkpoints", "batch_size", "updates_per_step", "action_repeat"):
             require_int(name, getattr(self, name), 1)
         require_int("seed_steps", self.seed_steps, 0)
         require_int("seed", self.seed, 0)

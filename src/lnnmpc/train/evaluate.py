@@ -39,7 +39,7 @@ from lnnmpc.train.config import BACKENDS, ConfigError, TrainConfig, obs_tag, par
 from lnnmpc.train.loop import LoopConfig, TrainingLoop
 from lnnmpc.train.policy_file import POLICY_FILE, SNAPSHOT_DIR, policy_path, policy_step, restore_policy, snapshot_steps
 from lnnmpc.train.report import StepProgress
-from lnnmpc.train.setup import build_loop, enable_compile_cache, shared_env
+from lnnmpc.train.setup import build_loop, config_env, enable_compile_cache
 from lnnmpc.train.sharding import SeedPlacement
 
 
@@ -243,7 +243,7 @@ def evaluate(run: str, *, obs: str | dict | None = None, episodes: int = 10, bac
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
     step = choose_checkpoint(run, checkpoint)
     try:
-        env = shared_env(config.task, config.physics, options)
+        env = config_env(config, options)
     except ValueError as error:
         raise ConfigError(str(error)) from None
     enable_compile_cache(config.compile_cache)

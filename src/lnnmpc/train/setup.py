@@ -97,11 +97,19 @@ def _cached_env(task: str, physics: str, options: tuple, x64: bool) -> envs.Env:
     return envs.make(task, physics=physics, **{name: value for name, _, value in options})
 
 
+def config_env(config: TrainConfig, options: dict) -> envs.Env:
+    """The configuration's task Env with corruption ``options`` (:func:`shared_env`): its physics profile and
+    action repeat (given to ``envs.make`` only where it departs from make's default, so that Envs of the default
+    stay one per process with those built without it)."""
+    repeat = {} if config.action_repeat == 2 else {"action_repeat": config.action_repeat}
+    return shared_env(config.task, config.physics, {**options, **repeat})
+
+
 def build_loop(config: TrainConfig) -> TrainingLoop:
     """Environments (:func:`shared_env`), agent and loop of a configuration (ValueErrors become ConfigErrors)."""
     try:
-        env = shared_env(config.task, config.physics, config.obs)
-        eval_env = shared_env(config.task, config.physics, config.eval_obs)  # equal options: the training Env
+        env = config_env(config, config.obs)
+        eval_env = config_env(config, config.eval_obs)  # equal options: the training Env
         if eval_env.observation_size != env.observation_size:
             raise ConfigError(f"eval_obs {config.eval_obs} changes the observation size "
                               f"({env.observation_size} -> {eval_env.observation_size}); remove_vel must match")

@@ -138,14 +138,14 @@ def _policy_and_env(run, obs, checkpoint, seed_index, max_steps):
     seed ``seed_index``'s agent state (a seed axis of one). Sets MUJOCO_GL=egl unless set: offscreen rendering,
     only effective before dm_control is first imported (it is, on the first dm_control episode)."""
     os.environ.setdefault("MUJOCO_GL", "egl")
-    from lnnmpc.train.setup import shared_env
+    from lnnmpc.train.setup import config_env
 
     policy = load_policy(run, checkpoint)
     config = policy.config
     if not 0 <= seed_index < config.seeds:
         raise ConfigError(f"seed_index {seed_index!r} out of range: the run has seeds 0..{config.seeds - 1}")
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
-    env = shared_env(config.task, config.physics, options)
+    env = config_env(config, options)
     check_observation_size(env, policy)
     if max_steps is not None:
         env = _shortened(env, max_steps)
