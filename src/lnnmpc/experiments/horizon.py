@@ -13,10 +13,10 @@ import time
 import jax
 import numpy as np
 
-from lnnmpc import envs
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import obs_tag, parse_obs, require_int
 from lnnmpc.train.evaluate import load_policy, mjx_evaluator, with_planner
+from lnnmpc.train.setup import config_env
 
 
 def planner_times(agent, state, env, key: jax.Array, calls: int = 30) -> np.ndarray:
@@ -49,7 +49,7 @@ def evaluate_horizon(run: str, horizon: int, *, obs: str | dict | None = None, e
     policy = load_policy(run, checkpoint)
     config = policy.config
     options = dict(config.eval_obs) if obs is None else parse_obs(obs)
-    env = envs.make(config.task, physics=config.physics, action_repeat=config.action_repeat, **options)
+    env = config_env(config, options)
     agent = with_planner(policy.loop.agent, {"plan_horizon": horizon})
     key = jax.random.key(seed)
     returns = mjx_evaluator(agent, env, episodes, config.seeds)(policy.agent_state, key)
