@@ -18,9 +18,9 @@ def _script(name: str = "episode_shares"):
     return module
 
 
-def _write(path, returns):
-    path.write_text("env_step,seed,episode,return\n" + "".join(
-        f"100,0,{e},{r}\n" for e, r in reversed(list(enumerate(returns)))))  # episode order restored by the reader
+def _write(path, returns):  # as `cli eval` writes them
+    path.write_text("env_step,seed,episode,return,backend,obs,actor,planner,eval_seed\n" + "".join(
+        f"100,0,{e},{r},mjx,clean,planner,,0\n" for e, r in reversed(list(enumerate(returns)))))  # reordered
     return str(path)
 
 
@@ -42,7 +42,9 @@ def test_shares_split_an_additive_table_and_read_csvs_in_episode_order(tmp_path,
     out = capsys.readouterr().out
     assert out.startswith("3 policies x 4 episodes: episode share ") and "rest 0.00" in out
     assert "(mean 425.0)" in out.splitlines()[2]  # the best policy per episode: 750 150 450 350
-    with pytest.raises(ValueError, match=r"different numbers of episodes: \[3, 4\]"):
+    from lnnmpc.train.config import ConfigError
+
+    with pytest.raises(ConfigError, match=r"hold other \(seed, episode\) rows: only in the first \[\(0, 3\)\]"):
         script.returns_table([paths[0], _write(tmp_path / "short.csv", [1.0, 2.0, 3.0])])
     assert script.main(paths[:1]) == 2
 

@@ -3,7 +3,8 @@
     python experiments/scripts/episode_shares.py CSV [CSV ...]
 
 Each CSV is one policy's evaluation (``python -m lnnmpc.train.cli eval ... --out CSV``) over the same episodes
-(the same ``--seed``, backend and episode count, so episode e starts from the same initial state in every file).
+(the same ``--seed``, backend and episode count, so episode e starts from the same initial state in every file;
+read and checked as ``python -m lnnmpc.train.paired`` reads them).
 The returns form a (policies, episodes) table; the sums of squares split as in a two-way analysis of variance
 without replication: the episode's share (the spread of the per-episode means over policies), the policy's share
 (the spread of the per-policy means) and the rest. Prints the shares, the per-episode mean over policies, the best
@@ -13,23 +14,22 @@ score).
 
 from __future__ import annotations
 
-import csv
 import sys
 
 import numpy as np
 
 
 def returns_table(paths: list[str]) -> np.ndarray:
-    """(policies, episodes) returns, one row per CSV in episode order; every CSV must hold the same episodes."""
-    rows = []
-    for path in paths:
-        with open(path) as f:
-            table = sorted(csv.DictReader(f), key=lambda r: int(r["episode"]))
-        rows.append([float(r["return"]) for r in table])
-    lengths = {len(r) for r in rows}
-    if len(lengths) != 1:
-        raise ValueError(f"the CSVs hold different numbers of episodes: {sorted(lengths)}")
-    return np.asarray(rows)
+    """(policies, episodes) returns, one row per CSV (:func:`lnnmpc.train.paired.read_episode_returns`), the
+    columns the first CSV's (seed, episode) rows in order; every CSV must hold the same episodes
+    (:func:`lnnmpc.train.paired.check_same_episodes`, ConfigError otherwise)."""
+    from lnnmpc.train.paired import check_same_episodes, read_episode_returns
+
+    csvs = [read_episode_returns(path) for path in paths]
+    for other in csvs[1:]:
+        check_same_episodes(csvs[0], other)
+    keys = sorted(csvs[0].returns)
+    return np.stack([c.values(keys) for c in csvs])
 
 
 def shares(table: np.ndarray) -> dict[str, float]:
@@ -45,7 +45,13 @@ def main(argv: list[str]) -> int:
     if len(argv) < 2:
         print("give two or more evaluation CSVs of the same episodes", file=sys.stderr)
         return 2
-    table = returns_table(argv)
+    from lnnmpc.train.config import ConfigError
+
+    try:
+        table = returns_table(argv)
+    except ConfigError as error:
+        print(error, file=sys.stderr)
+        return 2
     split = shares(table)
     print(f"{table.shape[0]} policies x {table.shape[1]} episodes: episode share {split['episode']:.2f}, policy share "
           f"{split['policy']:.2f}, rest {split['rest']:.2f}")
