@@ -1,6 +1,7 @@
 """Analysis scripts of ``experiments/scripts/``: ``episode_shares.py`` (the split of evaluation returns into the
 initial state's share, the policy's and the rest, against sums of squares computed by hand in float64) and
-``acrobot_hanging_starts.py``'s initial states."""
+``acrobot_hanging_starts.py``'s initial states and ``acrobot_oracle.py``'s mechanical energy (against MuJoCo's own,
+C, float64)."""
 
 import importlib.util
 import os
@@ -63,3 +64,30 @@ def test_hanging_starts_hang_at_rest_within_their_noise():
     down = np.angle(np.exp(1j * (qpos[:, 0] - np.pi)))  # the shoulder's offset from straight down
     assert np.abs(down).max() < 0.5 and 0.05 < down.std() < 0.2 and np.any(qpos[:, 0] > 0) and np.any(qpos[:, 0] < 0)
     assert np.abs(qpos[:, 1]).max() < 0.5 and 0.05 < qpos[:, 1].std() < 0.2
+
+
+def test_oracle_energy_matches_mujoco_and_bad_arguments_are_refused(capsys):
+    import copy
+
+    import jax
+    import jax.numpy as jnp
+    import mujoco
+
+    from lnnmpc.envs.env import make
+
+    oracle = _script("acrobot_oracle")
+    env = make("acrobot-swingup")
+    model = copy.deepcopy(env.mj_model)  # MuJoCo computes energies only when asked to
+    model.opt.enableflags |= mujoco.mjtEnableBit.mjENBL_ENERGY
+    data = mujoco.MjData(model)
+    for qpos, qvel in [((np.pi, 0.0), (0.0, 0.0)), ((0.0, 0.0), (0.0, 0.0)), ((1.0, -0.5), (2.0, -3.0))]:
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        mujoco.mj_forward(model, data)
+        state = env.reset_to(jnp.asarray(qpos, jnp.float32), jnp.asarray(qvel, jnp.float32))
+        assert float(oracle.mechanical_energy(env, state.physics)) == pytest.approx(data.energy.sum(), rel=1e-4)
+    down, up = oracle.energy_range(env)
+    assert up - down == pytest.approx(2 * 9.81 * 2.0, rel=1e-3)  # two unit-mass links, centres 1 and 2 m apart
+    starts = oracle.hanging_starts(16, 0.1, jax.random.key(0))
+    assert starts.shape == (16, 2) and np.abs(np.angle(np.exp(1j * (starts[:, 0] - np.pi)))).max() < 0.5
+    assert oracle.main(["--episodes", "0"]) == 2
+    assert "--episodes and --chunk must be >= 1" in capsys.readouterr().err
