@@ -11,7 +11,8 @@ issue #5's 700 reachable on dm_control's episodes at all? This plans with the re
 times the action repeat (plus, with ``--shaping``, ``--shaping-weight`` times a term in [0, 1] that the planner may
 use to pump energy where the reward, ~1e-14 hanging down, ranks nothing: the tip's height or how close the
 mechanical energy is to the upright's, :func:`planning_model`), and the terminal value the score of the last
-state. The returns reported are always the task's own rewards.
+state. The returns reported are always the task's own rewards. At the budgets tried (H 30-50, 256-512 samples,
+4 iterations; RESULTS.md [79]) it is far weaker than the learned agents, so it is no ceiling yet.
 
 ``--starts dm_control`` plays dm_control's seed-0 evaluation starts (episode e from ``task_kwargs={"random": e}``,
 the starts of ``lnnmpc.train.cli eval --backend dm_control``), ``--starts hanging`` both links down at rest with
