@@ -66,6 +66,17 @@ def test_hanging_starts_hang_at_rest_within_their_noise():
     assert np.abs(qpos[:, 1]).max() < 0.5 and 0.05 < qpos[:, 1].std() < 0.2
 
 
+def test_hanging_starts_time_an_agent_step_as_dm_control_times_a_control_step():
+    from dm_control import suite
+
+    from lnnmpc.envs.env import make
+
+    control = suite.load("acrobot", "swingup", task_kwargs={"random": 0}).control_timestep()  # 0.01 s
+    seconds = _script("acrobot_hanging_starts").seconds_per_agent_step
+    assert [seconds(make("acrobot-swingup", action_repeat=r)) for r in (1, 2, 4)] == pytest.approx(
+        [control, 2 * control, 4 * control])
+
+
 def test_oracle_energy_matches_mujoco_and_bad_arguments_are_refused(capsys):
     import copy
 

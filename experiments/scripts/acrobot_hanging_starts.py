@@ -10,7 +10,8 @@ evaluation protocol: MPPI without exploration noise, :func:`lnnmpc.analysis.roll
 only: shoulder pi + N(0, sigma^2), elbow N(0, sigma^2), velocities zero (the start replaces
 ``Env.initial_qpos_qvel`` for this process before anything traces a reset, since traced resets are cached). Per
 episode it reports the return, the highest the tip got above the shoulder (2.0: on the target; 0: level with the
-shoulder; -2.0: hanging) and the first agent step with the tip above the shoulder. ``--actor prior`` plays the
+shoulder; -2.0: hanging) and the first agent step with the tip above the shoulder (also in seconds of simulated
+time, which compare across action repeats). ``--actor prior`` plays the
 policy prior alone and ``--planner`` plans with other MPPI settings, as ``lnnmpc.train.cli eval`` does. Writes
 the rows to CSV (default <run>/analysis/<step>/hanging_starts.csv) and prints a summary.
 """
@@ -35,6 +36,11 @@ def hanging_init(sigma: float):
         return jnp.mod(qpos + jnp.pi, 2 * jnp.pi) - jnp.pi, jnp.zeros((self.mj_model.nv,))
 
     return init
+
+
+def seconds_per_agent_step(env) -> float:
+    """Simulated seconds per agent step of ``env``: action repeat x control steps' physics substeps x timestep."""
+    return env.action_repeat * env.n_substeps * float(env.mj_model.opt.timestep)
 
 
 def play(policy, agent, episodes: int) -> dict[str, np.ndarray]:
@@ -92,12 +98,17 @@ def main(argv: list[str] | None = None) -> int:
     setting = " ".join([args.actor, *args.planner])
     rows = [{"env_step": policy.checkpoint, "sigma": args.sigma, "setting": setting, "episode": e,
              **{k: float(v[e]) for k, v in played.items()}} for e in range(args.episodes)]
+    seconds_per_step = seconds_per_agent_step(policy.loop.eval_env)
+    for row in rows:
+        above = row["first_step_above"]
+        row["first_seconds_above"] = above * seconds_per_step if above >= 0 else -1.0
     ret, top, first = played["return"], played["max_tip_height"], played["first_step_above"]
     starts = zip(played["start_shoulder"], played["start_elbow"], strict=True)
     print(f"hanging starts (sigma {args.sigma}), {setting}: return {ret.mean():.1f} +- {ret.std():.1f} (episodes "
           f"{' '.join(f'{r:.0f}' for r in ret)}); tip above the shoulder in {int((top > 0).sum())} of "
-          f"{args.episodes} (first at agent steps {' '.join(str(int(f)) for f in first)}); highest tip "
-          f"{' '.join(f'{h:.2f}' for h in top)}; starts (shoulder, elbow) "
+          f"{args.episodes} (first at agent steps {' '.join(str(int(f)) for f in first)}, "
+          f"{seconds_per_step:g} s each); "
+          f"highest tip {' '.join(f'{h:.2f}' for h in top)}; starts (shoulder, elbow) "
           f"{' '.join(f'({a:.2f}, {b:.2f})' for a, b in starts)}")
     out = args.out or os.path.join(args.run, "analysis", str(policy.checkpoint), "hanging_starts.csv")
     os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
