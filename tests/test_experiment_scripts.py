@@ -102,3 +102,24 @@ def test_oracle_energy_matches_mujoco_and_bad_arguments_are_refused(capsys):
     assert starts.shape == (16, 2) and np.abs(np.angle(np.exp(1j * (starts[:, 0] - np.pi)))).max() < 0.5
     assert oracle.main(["--episodes", "0"]) == 2
     assert "--episodes and --chunk must be >= 1" in capsys.readouterr().err
+
+
+def test_value_calibration_returns_to_go_and_summaries_against_direct_sums():
+    script = _script("value_calibration")
+    rng = np.random.default_rng(0)
+    rewards = rng.uniform(0, 2, (3, 40))
+    gamma = 0.9
+    direct = np.array([[sum(gamma ** k * r[t + k] for k in range(40 - t)) for t in range(40)] for r in rewards])
+    np.testing.assert_allclose(script.discounted_returns(rewards, gamma), direct, rtol=1e-12)
+    np.testing.assert_array_equal(script.discounted_returns(rewards, 0.0), rewards)
+    kept = script.uncut_steps(500, 0.99)
+    last = kept - 1  # the last step kept: its return misses at most 5%, the next step's more
+    assert 0.99 ** (500 - last) <= 0.05 < 0.99 ** (500 - last - 1) and kept == 202
+    assert script.uncut_steps(10, 0.99) == 0
+    q = direct + 1.0
+    keep = np.zeros_like(q, bool)
+    keep[:, :5] = True
+    summary = script.phase_summary(q, direct, keep)
+    assert summary["steps"] == 15 and summary["bias"] == pytest.approx(1.0)
+    assert summary["corr"] == pytest.approx(1.0) and summary["g"] == pytest.approx(direct[:, :5].mean())
+    assert script.phase_summary(q, direct, np.zeros_like(keep))["steps"] == 0

@@ -13,7 +13,7 @@ from lnn_helpers import quick_jit, tiny_agent
 
 from lnnmpc.agents import math as M
 from lnnmpc.agents.lnn import LNNTDMPC2
-from lnnmpc.agents.overrides import apply_planner_overrides, planner_keys
+from lnnmpc.agents.overrides import apply_overrides, apply_planner_overrides, planner_keys
 from lnnmpc.agents.registry import AGENTS, LNN_AGENTS, make_agent
 
 OBS, ACT, B = 5, 2, 8
@@ -392,6 +392,28 @@ def test_planning_value_is_the_mean_or_the_min_of_the_two_heads_drawn(name):
     np.testing.assert_allclose(values["min"], heads.min(), rtol=1e-6)
     with pytest.raises(ValueError, match=r"terminal_q='max' is invalid; expected one of mean, min"):
         apply_planner_overrides(agent.config, {"terminal_q": "max"})
+
+
+def test_target_q_combines_the_target_heads_by_their_minimum_or_mean_and_is_validated(zp_agent):
+    """``--set target_q=mean``: the TD targets bootstrap on the mean of the two target heads drawn instead of their
+    minimum (TD-MPC2's); with heads that disagree the value loss moves, and nothing else of the loss does."""
+    agent, state = zp_agent
+    heads = jnp.array([[1.0, -2.0, 4.0], [3.0, 0.0, 4.0]])
+    mean_agent = type(agent)(dataclasses.replace(agent.config, target_q="mean"))
+    np.testing.assert_array_equal(np.asarray(agent._target_value(heads)), [1.0, -2.0, 4.0])
+    np.testing.assert_array_equal(np.asarray(mean_agent._target_value(heads)), [2.0, -1.0, 4.0])
+    noise = jax.tree.map(lambda x: 0.3 * jax.random.normal(jax.random.key(8), x.shape, x.dtype),
+                         state.params["q_heads"])
+    params = {**state.params, "q_heads": jax.tree.map(jnp.add, state.params["q_heads"], noise)}
+    batch, key = window(agent), jax.random.key(3)
+    losses = {how: quick_jit(a.world_model_loss)(params, params["q_heads"], batch, key)[1][1]
+              for how, a in (("min", agent), ("mean", mean_agent))}
+    assert abs(float(losses["min"]["value_loss"]) - float(losses["mean"]["value_loss"])) > 1e-4
+    for name in ("prediction_loss", "reward_loss"):
+        np.testing.assert_allclose(float(losses["min"][name]), float(losses["mean"][name]), rtol=1e-6)
+    with pytest.raises(ValueError, match=r"target_q='max' is invalid; expected one of mean, min"):
+        apply_overrides(agent.config, {"target_q": "max"})
+    assert apply_overrides(agent.config, {"target_q": "mean"}).target_q == "mean"
 
 
 def test_symlog_input_transform_squashes_what_the_cell_reads(zp_agent):

@@ -49,7 +49,11 @@ def _np_soft_ce(logits, target, num_bins=101, vmin=-10.0, vmax=10.0):
     return -(probs * log_softmax).sum(-1)
 
 
-def test_world_model_loss_matches_numpy_reference(agent):
+@pytest.mark.parametrize("target_q", ["min", "mean"])
+def test_world_model_loss_matches_numpy_reference(agent, target_q):
+    """TD targets bootstrap on the minimum of the two target heads drawn (TD-MPC2) or, ``target_q="mean"``, on
+    their mean; with two heads both are drawn, so the reference combines both."""
+    agent = type(agent)(dataclasses.replace(agent.config, target_q=target_q))
     state = agent.init(jax.random.key(0))
     # Non-zero reward/Q output layers, so the cross-entropies are not trivially log(101).
     params = jax.tree_util.tree_map(lambda x: x + 0.05 * jnp.sin(jnp.arange(x.size).reshape(x.shape)), state.params)
@@ -68,8 +72,9 @@ def test_world_model_loss_matches_numpy_reference(agent):
     probs = np.exp(q_logits - q_logits.max(-1, keepdims=True))
     probs /= probs.sum(-1, keepdims=True)
     sym = probs @ bins
-    target_q = np.sign(sym) * np.expm1(np.abs(sym))
-    td = reward + 0.99 * target_q.min(axis=0)
+    heads_q = np.sign(sym) * np.expm1(np.abs(sym))
+    assert np.abs(heads_q[0] - heads_q[1]).max() > 1e-3  # the heads disagree: min and mean differ
+    td = reward + 0.99 * (heads_q.min(axis=0) if target_q == "min" else heads_q.mean(axis=0))
     zs = [apply(obs[0], method="encode")]
     for t in range(H):
         zs.append(apply(jnp.asarray(zs[-1], jnp.float32), action[t], method="next"))

@@ -234,7 +234,7 @@ class LNNTDMPC2(TDMPC2):
         with jax.named_scope("td_targets"):
             next_action = self._policy_sample(params, next_z, k_pi).action
             next_q = self._q_values(params, next_z, next_action, self._two_heads(k_heads), q_params=target_q)
-            td_target = jax.lax.stop_gradient(lambda_returns(reward, jnp.min(next_q, axis=0), cfg.gamma,
+            td_target = jax.lax.stop_gradient(lambda_returns(reward, self._target_value(next_q), cfg.gamma,
                                                              cfg.lambda_))
         target = next_z if cfg.model.objective == "zp" else batch["obs"][T + 1:]
 

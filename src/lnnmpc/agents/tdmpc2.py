@@ -29,7 +29,7 @@ from flax import struct
 from flax.traverse_util import path_aware_map
 
 from lnnmpc.agents import math as M
-from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, combine_terminal_q, mppi_plan
+from lnnmpc.agents.mppi import TERMINAL_Q, MPPIConfig, PlanningModel, combine_terminal_q, mppi_plan
 from lnnmpc.agents.tdmpc2_model import WorldModel, WorldModelConfig, q_logits_of_heads
 
 
@@ -68,6 +68,11 @@ class TDMPC2Config:
     lr_decay_begin: int = 0
     lr_decay_end: int = 0
     lr_final_scale: float = 1.0
+    # How the TD targets combine the two target Q heads drawn: their minimum (TD-MPC2: a pessimistic target) or
+    # their mean (not TD-MPC2's). The minimum's bias compounds along the bootstrap chain (roughly its per-step bias
+    # / (1 - gamma)); the acrobot recipe's critic values its own prior's return 12.7 too low on average and ~10x
+    # too low from starts hanging at rest (experiments/RESULTS.md [80]).
+    target_q: str = "min"
 
     def __post_init__(self):
         if not isinstance(self.horizon, int) or self.horizon < 1:
@@ -79,6 +84,9 @@ class TDMPC2Config:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
         _check_lr_decay(self.lr_decay_begin, self.lr_decay_end, self.lr_final_scale)
+        if self.target_q not in TERMINAL_Q:
+            raise ValueError(f"target_q={self.target_q!r} is invalid; expected one of {', '.join(TERMINAL_Q)} (how "
+                             "the TD targets combine the two target Q heads drawn)")
         if self.flat_optimizer and not self.joint_grad_clip:
             raise ValueError("flat_optimizer=True needs joint_grad_clip=True (one flat vector has one global norm; "
                              "per-group clipping is the per-leaf optimiser's)")
@@ -211,6 +219,11 @@ class TDMPC2:
     def _two_heads(self, key):
         return jax.random.choice(key, self.config.model.num_q, (2,), replace=False)
 
+    def _target_value(self, target_heads):
+        """The bootstrap value of the two target heads' Q (2, ...) -> (...): their minimum (TD-MPC2) or, with
+        ``target_q="mean"``, their mean."""
+        return combine_terminal_q(target_heads, self.config.target_q)
+
     # -------------------------------------------------------------------------------------- losses
     def world_model_loss(self, params, target_q, batch, key):
         """Scalar loss and metrics for a batch (see the module docstring)."""
@@ -221,7 +234,7 @@ class TDMPC2:
         next_z = jax.lax.stop_gradient(self._apply(params, obs[1:], method="encode"))
         next_action = self._policy_sample(params, next_z, k_pi).action
         target_q = self._q_values(params, next_z, next_action, self._two_heads(k_heads), q_params=target_q)
-        td_target = jax.lax.stop_gradient(reward + cfg.gamma * jnp.min(target_q, axis=0))
+        td_target = jax.lax.stop_gradient(reward + cfg.gamma * self._target_value(target_q))
 
         def rollout(z, a):
             z_next = self._apply(params, z, a, method="next")

@@ -58,7 +58,7 @@ ADDED_AGENT_FIELDS = {"nll_beta": 0.0, "model.input_transform": "none", "joint_g
                       "model.latent_size": 0, "model.latent_obs_skip": False,
                       "model.latent_head_hidden": 0, "learn_episode_starts": False,
                       "planner.explore_min_std": 0.0, "planner.terminal_q": "mean", "lr_decay_begin": 0,
-                      "lr_decay_end": 0, "lr_final_scale": 1.0}
+                      "lr_decay_end": 0, "lr_final_scale": 1.0, "target_q": "min"}
 
 
 def check_agent_config(run: str, agent_config) -> None:
