@@ -65,7 +65,8 @@ def combine_terminal_q(q_heads: jax.Array, terminal_q: str) -> jax.Array:
     """The terminal value from the drawn Q heads' values (heads, ...) -> (...): their mean (TD-MPC2) or, with
     ``terminal_q="min"``, their minimum, which values a state by its most pessimistic head, so that imagined
     trajectories into states where the heads disagree (rare in the replay, where a critic's over-estimate lives)
-    score lower."""
+    score lower. The agents' TD targets combine their two target heads with it too (``target_q``, minimum by
+    default there)."""
     return jnp.min(q_heads, axis=0) if terminal_q == "min" else jnp.mean(q_heads, axis=0)
 
 

@@ -4,7 +4,7 @@ Update on a time-major batch of H + 1 replay records (obs (H+1, B, d), action (H
 last record's action and reward are unused), following TD-MPC2:
 
 * targets: next latents ``z'_t = enc(o_{t+1})`` (no gradient); TD targets ``r_t + γ Q̄(z'_t, π(z'_t))`` with
-  Q̄ the min of 2 random heads of the Polyak target network;
+  Q̄ the min of 2 random heads of the Polyak target network (their mean with ``target_q="mean"``, not TD-MPC2's);
 * world model: latent rollout ``ẑ_{t+1} = d(ẑ_t, a_t)`` from ``ẑ_0 = enc(o_0)``; consistency MSE to ``z'_t``,
   reward and Q soft cross-entropies on two-hot targets at ``ẑ_0..ẑ_{H-1}``, each step weighted ρ^t and averaged
   over the horizon (Q also over heads); total ``20·consistency + 0.1·reward + 0.1·value``; Adam with the encoder's
