@@ -38,11 +38,6 @@ def hanging_init(sigma: float):
     return init
 
 
-def seconds_per_agent_step(env) -> float:
-    """Simulated seconds per agent step of ``env``: action repeat x control steps' physics substeps x timestep."""
-    return env.action_repeat * env.n_substeps * float(env.mj_model.opt.timestep)
-
-
 def play(policy, agent, episodes: int) -> dict[str, np.ndarray]:
     """Seed 0's deterministic episodes acted by ``agent`` (:func:`lnnmpc.analysis.rollout.rollout`, key 0); per
     episode: the return, the highest tip height above the shoulder, the first agent step above it (-1: never) and
@@ -98,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     setting = " ".join([args.actor, *args.planner])
     rows = [{"env_step": policy.checkpoint, "sigma": args.sigma, "setting": setting, "episode": e,
              **{k: float(v[e]) for k, v in played.items()}} for e in range(args.episodes)]
-    seconds_per_step = seconds_per_agent_step(policy.loop.eval_env)
+    seconds_per_step = policy.loop.eval_env.agent_timestep
     for row in rows:
         above = row["first_step_above"]
         row["first_seconds_above"] = above * seconds_per_step if above >= 0 else -1.0

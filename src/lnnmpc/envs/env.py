@@ -88,6 +88,11 @@ class Env:
         return int(self.kept.size)
 
     @property
+    def agent_timestep(self) -> float:
+        """Simulated seconds per agent step: the physics timestep x its substeps per control step x action repeat."""
+        return float(self.mj_model.opt.timestep * self.n_substeps) * self.action_repeat
+
+    @property
     def episode_length(self) -> int:
         """Agent steps per episode (control steps / action repeat, rounded up)."""
         return -(-self.spec.control_steps // self.action_repeat)

@@ -202,8 +202,7 @@ def record(run: str, *, out: str | None = None, obs: str | dict | None = None, c
 
 def _fps(env) -> float:
     """Agent steps per second of simulated time."""
-    control_timestep = env.mj_model.opt.timestep * env.n_substeps
-    return 1.0 / (control_timestep * env.action_repeat)
+    return 1.0 / env.agent_timestep
 
 
 def _shortened(env, max_steps: int):
