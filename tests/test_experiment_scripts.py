@@ -1,8 +1,9 @@
 """Analysis scripts of ``experiments/scripts/``: ``episode_shares.py`` (the split of evaluation returns into the
 initial state's share, the policy's and the rest, against sums of squares computed by hand in float64) and
-``acrobot_hanging_starts.py``'s initial states and ``acrobot_oracle.py``'s mechanical energy (against MuJoCo's own,
-C, float64)."""
+``acrobot_hanging_starts.py``'s initial states, ``acrobot_oracle.py``'s mechanical energy (against MuJoCo's own,
+C, float64) and ``acrobot_ceiling_figure.py``'s join of per-start returns."""
 
+import csv
 import importlib.util
 import os
 
@@ -122,3 +123,20 @@ def test_value_calibration_returns_to_go_and_summaries_against_direct_sums():
     assert summary["steps"] == 15 and summary["bias"] == pytest.approx(1.0)
     assert summary["corr"] == pytest.approx(1.0) and summary["g"] == pytest.approx(direct[:, :5].mean())
     assert script.phase_summary(q, direct, np.zeros_like(keep))["steps"] == 0
+
+
+def test_ceiling_figure_joins_sources_by_episode_with_the_starts_energy(tmp_path, capsys):
+    script = _script("acrobot_ceiling_figure")
+    planner = tmp_path / "planner.csv"
+    planner.write_text("episode,return,start_shoulder,start_elbow\n9,300.0,0,0\n4,320.0,0,0\n0,650.0,0,0\n")
+    policy = _write(tmp_path / "policy.csv", [700.0, 1.0, 2.0, 3.0, 100.0])  # episodes 0-4, shares 0 and 4
+    out = str(tmp_path / "fig")
+    assert script.main(["--planner", f"P={planner}", "--policies", f"S={policy}", "--out", out]) == 0
+    rows = list(csv.DictReader(open(f"{out}.csv")))
+    assert [int(r["episode"]) for r in rows] == [0, 4]
+    assert [float(r["best"]) for r in rows] == [700.0, 320.0]
+    energies = [float(r["start_energy"]) for r in rows]
+    assert -19.62 < energies[1] < -18.0 < energies[0] < 19.62  # episode 4 starts near hanging, within the range
+    assert os.path.getsize(f"{out}.png") > 1000 and "P: 485.0" in capsys.readouterr().out
+    assert script.main(["--planner", "no-label.csv", "--out", out]) == 2
+    assert "LABEL=CSV" in capsys.readouterr().err
