@@ -128,10 +128,12 @@ def test_value_calibration_returns_to_go_and_summaries_against_direct_sums():
 def test_ceiling_figure_joins_sources_by_episode_with_the_starts_energy(tmp_path, capsys):
     script = _script("acrobot_ceiling_figure")
     planner = tmp_path / "planner.csv"
-    planner.write_text("episode,return,start_shoulder,start_elbow\n9,300.0,0,0\n4,320.0,0,0\n0,650.0,0,0\n")
+    planner.write_text("episode,return,start_shoulder,start_elbow\n9,300.0,0,0\n4,320.0,0,0\n")
+    (tmp_path / "more.csv").write_text("episode,return,start_shoulder,start_elbow\n0,650.0,0,0\n")
     policy = _write(tmp_path / "policy.csv", [700.0, 1.0, 2.0, 3.0, 100.0])  # episodes 0-4, shares 0 and 4
     out = str(tmp_path / "fig")
-    assert script.main(["--planner", f"P={planner}", "--policies", f"S={policy}", "--out", out]) == 0
+    joined = f"P={planner}+{tmp_path / 'more.csv'}"
+    assert script.main(["--planner", joined, "--policies", f"S={policy}", "--out", out]) == 0
     rows = list(csv.DictReader(open(f"{out}.csv")))
     assert [int(r["episode"]) for r in rows] == [0, 4]
     assert [float(r["best"]) for r in rows] == [700.0, 320.0]

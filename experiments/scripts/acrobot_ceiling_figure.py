@@ -4,11 +4,12 @@
     python experiments/scripts/acrobot_ceiling_figure.py --planner LABEL=CSV [LABEL=CSV ...]
         --policies LABEL=CSV [LABEL=CSV ...] --out PREFIX
 
-``--planner`` CSVs are ``acrobot_ceiling``'s (``episode``, ``return``, ``start_shoulder``, ``start_elbow``);
-``--policies`` CSVs are ``lnnmpc.train.cli eval --backend dm_control``'s (``episode``, ``return``), whose episode
-``e`` starts where ``task_kwargs={"random": e}`` puts it, as the planner's does. Writes ``PREFIX.csv`` (one row
-per start: its angles, its energy and every source's return, plus the best over all) and ``PREFIX.png``, and
-prints the means over the starts they share.
+A label may join several CSVs with ``+`` (``H100=a.csv+b.csv``: their episodes together). ``--planner`` CSVs
+are ``acrobot_ceiling``'s (``episode``, ``return``, ``start_shoulder``, ``start_elbow``); ``--policies`` CSVs
+are ``lnnmpc.train.cli eval --backend dm_control``'s (``episode``, ``return``), whose episode ``e`` starts where
+``task_kwargs={"random": e}`` puts it, as the planner's does. Writes ``PREFIX.csv`` (one row per start: its
+angles, its energy and every source's return, plus the best over all) and ``PREFIX.png``, and prints the means
+over the starts they share.
 """
 
 from __future__ import annotations
@@ -61,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"acrobot_ceiling_figure: {error}", file=sys.stderr)
         return 2
     sources = {**planners, **policies}
-    returns = {label: read_returns(path) for label, path in sources.items()}
+    returns = {label: {episode: value for part in path.split("+") for episode, value in read_returns(part).items()}
+               for label, path in sources.items()}
     shared = sorted(set.intersection(*(set(r) for r in returns.values())))
     if not shared:
         print("acrobot_ceiling_figure: the CSVs share no episode", file=sys.stderr)
