@@ -74,6 +74,13 @@ def test_smooth_noise_interpolates_its_knots_and_config_refuses_impossible_value
             ac.PlannerConfig(**bad).validate()
 
 
+def test_cli_refuses_bad_values_naming_them(capsys):
+    assert ac.main(["--elites", "600"]) == 2
+    assert "elites (600) must not exceed samples (512)" in capsys.readouterr().err
+    assert ac.main(["--episodes", "0"]) == 2
+    assert "--episodes must be >= 1" in capsys.readouterr().err
+
+
 def test_planner_holds_the_chain_upright_in_dm_control(params):
     """From just off the top, a short plan keeps the tip at the target: the planner, the model and dm_control
     agree."""
@@ -85,3 +92,5 @@ def test_planner_holds_the_chain_upright_in_dm_control(params):
     rows = ac.play(envs, config, steps=60, progress=False)
     assert rows[0]["return"] > 0.95 * 60  # one per control step at the target
     assert rows[0]["first_control_step_above_shoulder"] == 0
+    with pytest.raises(ValueError, match="steps must be in"):
+        ac.play(envs, config, steps=1001, progress=False)

@@ -285,6 +285,8 @@ def play(envs, config: PlannerConfig, seed: int = 0, steps: int = EPISODE_STEPS,
     import jax
     import jax.numpy as jnp
 
+    if not 1 <= steps <= EPISODE_STEPS:
+        raise ValueError(f"steps must be in [1, {EPISODE_STEPS}] (one dm_control episode), got {steps}")
     p = params_from_model(envs[0].physics.model.ptr)
     plan = make_planner(p, config)
     b = len(envs)
@@ -325,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=10, help="dm_control starts, episode e from random=e")
     parser.add_argument("--first-episode", type=int, default=0)
     parser.add_argument("--seed", type=int, default=0, help="the planner's noise")
-    parser.add_argument("--x64", action="store_true", help="plan in float64 (default float32, ~2x faster)")
+    parser.add_argument("--x64", action="store_true", help="plan in float64 (default float32, faster)")
     for name, value in defaults._asdict().items():
         parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
     parser.add_argument("--out", default="acrobot_ceiling.csv")
