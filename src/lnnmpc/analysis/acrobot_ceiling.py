@@ -78,6 +78,15 @@ def params_from_model(model) -> AcrobotParams:
         g=float(-model.opt.gravity[2]), dt=float(model.opt.timestep))
 
 
+def mass_matrix(p: AcrobotParams, elbow):
+    """The chain's inertia matrix entries ``(m11, m12, m22)``, each ``(...)``, at elbow angles ``(...)``."""
+    import jax.numpy as jnp
+
+    coupling = p.m2 * p.l1 * p.c2 * jnp.cos(elbow)
+    m22 = p.i2 + p.m2 * p.c2 ** 2
+    return p.i1 + p.m1 * p.c1 ** 2 + m22 + p.m2 * p.l1 ** 2 + 2 * coupling, m22 + coupling, m22
+
+
 def acrobot_accel(p: AcrobotParams, qpos, qvel, ctrl):
     """Joint accelerations ``(..., 2)`` from angles and velocities ``(..., 2)`` (shoulder, elbow; 0 = upright) and
     the elbow's control ``(...)`` (clipped to [-1, 1] as the actuator's range does): ``M(q) qacc = tau - c(q, v)
@@ -86,11 +95,9 @@ def acrobot_accel(p: AcrobotParams, qpos, qvel, ctrl):
 
     q2 = qpos[..., 1]
     v1, v2 = qvel[..., 0], qvel[..., 1]
-    s2, c2 = jnp.sin(q2), jnp.cos(q2)
+    s2 = jnp.sin(q2)
     coupling = p.m2 * p.l1 * p.c2
-    m22 = p.i2 + p.m2 * p.c2 ** 2
-    m12 = m22 + coupling * c2
-    m11 = p.i1 + p.m1 * p.c1 ** 2 + m22 + p.m2 * p.l1 ** 2 + 2 * coupling * c2
+    m11, m12, m22 = mass_matrix(p, q2)
     s1, s12 = jnp.sin(qpos[..., 0]), jnp.sin(qpos[..., 0] + q2)
     f1 = (coupling * s2 * (2 * v1 * v2 + v2 ** 2) + p.g * ((p.m1 * p.c1 + p.m2 * p.l1) * s1 + p.m2 * p.c2 * s12)
           - p.damping * v1)
@@ -135,10 +142,7 @@ def mechanical_energy(p: AcrobotParams, qpos, qvel):
     import jax.numpy as jnp
 
     v1, v2 = qvel[..., 0], qvel[..., 1]
-    c2 = jnp.cos(qpos[..., 1])
-    m22 = p.i2 + p.m2 * p.c2 ** 2
-    m12 = m22 + p.m2 * p.l1 * p.c2 * c2
-    m11 = p.i1 + p.m1 * p.c1 ** 2 + m22 + p.m2 * p.l1 ** 2 + 2 * p.m2 * p.l1 * p.c2 * c2
+    m11, m12, m22 = mass_matrix(p, qpos[..., 1])
     kinetic = 0.5 * (m11 * v1 ** 2 + 2 * m12 * v1 * v2 + m22 * v2 ** 2)
     a1, a12 = qpos[..., 0], qpos[..., 0] + qpos[..., 1]
     potential = p.g * (p.m1 * p.c1 * jnp.cos(a1) + p.m2 * (p.l1 * jnp.cos(a1) + p.c2 * jnp.cos(a12)))
