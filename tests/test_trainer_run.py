@@ -370,7 +370,9 @@ def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
     """Every evaluation of eval.csv replayed outside the trainer: that step's policy, the trainer's evaluation key for
     it (split in turn from ``key(seed + 10,000)``), through ``mjx_evaluator`` (another compiled program: it records no
     latents). The same episodes must give the same returns, so that a standalone evaluation's numbers and a run's
-    curve differ only by the episodes they play (``lnnmpc.evaluate``'s default key is ``key(0)``: other episodes)."""
+    curve differ only by the episodes they play (``lnnmpc.evaluate``'s default key is ``key(0)``: other episodes).
+    The evaluator plays 4 episodes, the program the tests above compiled: more episodes with the same key extend
+    the set (tests/test_train_loop.py), so its first 2 are the trainer's 2."""
     import jax
 
     from lnnmpc.train.evaluate import load_policy, mjx_evaluator, policy_at
@@ -378,7 +380,7 @@ def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
 
     enable_compile_cache(cache)
     policy = load_policy(str(reference))
-    evaluate = mjx_evaluator(policy.loop.agent, policy.loop.eval_env, episodes=2, seeds=2)
+    evaluate = mjx_evaluator(policy.loop.agent, policy.loop.eval_env, episodes=4, seeds=2)
     rows = _rows(reference / "eval.csv")
     chain = jax.random.key(policy.config.seed + 10_000)
     for step in CHECKPOINTS:
@@ -386,7 +388,7 @@ def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
         logged = np.zeros((2, 2))
         for row in (r for r in rows if int(r["env_step"]) == step):
             logged[int(row["seed"]), int(row["episode"])] = float(row["return"])
-        replayed = evaluate(policy_at(policy, str(reference), step).agent_state, key)
+        replayed = evaluate(policy_at(policy, str(reference), step).agent_state, key)[:, :2]
         np.testing.assert_allclose(replayed, logged, rtol=1e-4, atol=1e-2, err_msg=f"evaluation at {step}")
 
 
