@@ -325,25 +325,41 @@ def play(envs, config: PlannerConfig, seed: int = 0, steps: int = EPISODE_STEPS,
              "start_elbow": float(starts[i, 1])} for i in range(b)]
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    defaults = PlannerConfig()
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--episodes", type=int, default=10, help="dm_control starts, episode e from random=e")
+def episode_parser(description: str, defaults, episodes: int) -> argparse.ArgumentParser:
+    """A command line with ``--episodes`` (default ``episodes``) and ``--first-episode`` (dm_control's starts) and
+    one ``--name`` option per field of the config ``defaults`` (a NamedTuple; underscores as dashes)."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--episodes", type=int, default=episodes, help="dm_control starts, episode e from random=e")
     parser.add_argument("--first-episode", type=int, default=0)
-    parser.add_argument("--seed", type=int, default=0, help="the planner's noise")
-    parser.add_argument("--x64", action="store_true", help="plan in float64 (default float32, faster)")
     for name, value in defaults._asdict().items():
         parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
-    parser.add_argument("--out", default="acrobot_ceiling.csv")
-    args = parser.parse_args(argv)
-    config = PlannerConfig(**{name: getattr(args, name) for name in defaults._fields})
+    return parser
+
+
+def checked_config(program: str, defaults, args):
+    """The config of ``args``' options (fields of ``defaults``), validated with the episode range; ``None`` after
+    printing the first impossible value, prefixed by ``program``, to stderr."""
+    config = type(defaults)(**{name: getattr(args, name) for name in defaults._fields})
     try:
         config.validate()
         if args.episodes < 1 or args.first_episode < 0:
             raise ValueError(f"--episodes must be >= 1 and --first-episode >= 0, got {args.episodes} and "
                              f"{args.first_episode}")
     except ValueError as error:
-        print(f"acrobot_ceiling: {error}", file=sys.stderr)
+        print(f"{program}: {error}", file=sys.stderr)
+        return None
+    return config
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    defaults = PlannerConfig()
+    parser = episode_parser(__doc__.split("\n")[0], defaults, episodes=10)
+    parser.add_argument("--seed", type=int, default=0, help="the planner's noise")
+    parser.add_argument("--x64", action="store_true", help="plan in float64 (default float32, faster)")
+    parser.add_argument("--out", default="acrobot_ceiling.csv")
+    args = parser.parse_args(argv)
+    config = checked_config("acrobot_ceiling", defaults, args)
+    if config is None:
         return 2
     import jax
 

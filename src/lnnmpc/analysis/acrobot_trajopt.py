@@ -23,7 +23,6 @@ seconds of CPU per start); the returns under the closed form are reported beside
 
 from __future__ import annotations
 
-import argparse
 import csv
 import sys
 import time
@@ -322,25 +321,15 @@ def play_in_dm_control(envs, config: TrajoptConfig, us, xs, gains) -> list[dict]
 
 def main(argv: Sequence[str] | None = None) -> int:
     defaults = TrajoptConfig()
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--episodes", type=int, default=2, help="dm_control starts, episode e from random=e")
-    parser.add_argument("--first-episode", type=int, default=0)
+    parser = ceiling.episode_parser(__doc__.split("\n")[0], defaults, episodes=2)
     parser.add_argument("--init", choices=("noise", "mppi"), default="noise",
                         help="noise: --restarts smooth random sequences through every stage of STAGES; mppi: the "
                              "receding-horizon planner's actions (acrobot_ceiling's defaults), then the last stage")
     parser.add_argument("--seed", type=int, default=0)
-    for name, value in defaults._asdict().items():
-        parser.add_argument(f"--{name.replace('_', '-')}", type=type(value), default=value)
     parser.add_argument("--out", default="acrobot_trajopt.csv")
     args = parser.parse_args(argv)
-    config = TrajoptConfig(**{name: getattr(args, name) for name in defaults._fields})
-    try:
-        config.validate()
-        if args.episodes < 1 or args.first_episode < 0:
-            raise ValueError(f"--episodes must be >= 1 and --first-episode >= 0, got {args.episodes} and "
-                             f"{args.first_episode}")
-    except ValueError as error:
-        print(f"acrobot_trajopt: {error}", file=sys.stderr)
+    config = ceiling.checked_config("acrobot_trajopt", defaults, args)
+    if config is None:
         return 2
     import jax
 
