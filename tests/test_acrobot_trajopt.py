@@ -51,6 +51,12 @@ def test_ilqr_solves_a_linear_quadratic_problem_as_riccati_does():
     np.testing.assert_allclose(np.asarray(costs)[-1], _cost(want_us, x0), rtol=1e-9)
     assert np.all(np.diff(np.asarray(costs)) <= 1e-12)  # only improving steps are kept
     np.testing.assert_allclose(np.asarray(xs)[-1], A @ np.asarray(xs)[-2] + B * want_us[-1], atol=1e-9)
+    with jax.enable_x64(True):  # around given states (the initial controls' own rollout): the same solution
+        start = jnp.full(T, 0.3)
+        given, cost = at.rollout(_lq_problem(), jnp.asarray(x0), start)
+        np.testing.assert_allclose(float(at.trajectory_cost(_lq_problem(), given, start)), float(cost), rtol=1e-12)
+        again = at.ilqr(_lq_problem(), jnp.asarray(x0), start, iterations=4, mu=1e-9, xs=given)[0]
+    np.testing.assert_allclose(np.asarray(again), want_us, atol=1e-7)
 
 
 def test_ilqr_keeps_controls_in_their_limits_and_beats_the_clipped_riccati_policy():
@@ -70,9 +76,9 @@ def test_ilqr_keeps_controls_in_their_limits_and_beats_the_clipped_riccati_polic
 
 
 def test_closed_form_returns_and_states_are_dm_controls():
-    """Random smooth actions for the first 60 agent steps of dm_control's starts 3 and 4: the closed form's return
-    (acrobot_problem's reward summed over both control steps of each agent step) and the states the trajectory
-    passes are the ones dm_control's play gives, with no feedback needed over this stretch."""
+    """Random smooth actions for the first 60 agent steps of dm_control's starts 3 and 4: the closed form's states
+    and return (acrobot_problem's reward summed over both control steps of each agent step, from each stored
+    state) are the ones dm_control's play gives, with no feedback needed over this stretch."""
     config = at.TrajoptConfig(restarts=2)
     envs = at.ceiling.dm_control_envs([3, 4])
     p = at.ceiling.params_from_model(envs[0].physics.model.ptr)
@@ -81,10 +87,9 @@ def test_closed_form_returns_and_states_are_dm_controls():
         us = np.asarray(at.initial_controls(jax.random.PRNGKey(0), config, 2, 60))
         assert us.shape == (2, 2, 60) and np.all(us[:, 0] == 0) and np.abs(us).max() <= 1 and us[:, 1].std() > 0.1
         us = us[:, 1]
-        returns = at.closed_form_returns(p, 2, jnp.asarray(starts), jnp.asarray(us))
-        problem, _ = at.acrobot_problem(p, 2, 0.0, 0.0, 0.0)
-        xs = np.stack([np.asarray(at.rollout(problem, jnp.asarray(x0), jnp.asarray(u))[0])
-                       for x0, u in zip(starts, us, strict=True)])
+        xs = at.rollouts(p, 2, jnp.asarray(starts), jnp.asarray(us))
+        assert xs.shape == (2, 61, 4) and np.array_equal(xs[:, 0], starts)
+        returns = at.trajectory_returns(p, 2, jnp.asarray(xs), jnp.asarray(us))
     rows = at.play_in_dm_control(envs, config, us, xs, np.zeros((2, 60, 4)))
     assert all(row["max_state_deviation"] < 1e-9 for row in rows)
     np.testing.assert_allclose([row["return"] for row in rows], returns, rtol=1e-9)

@@ -184,15 +184,29 @@ def forward_pass(problem: Problem, xs, us, k, gains, alpha):
 ALPHAS = 0.5 ** np.arange(10)
 
 
-def ilqr(problem: Problem, x0, us, iterations: int, mu: float = 1.0):
-    """``iterations`` of control-limited iLQR from controls ``us`` ``(T,)`` in [-1, 1]: each iteration tries the
-    step sizes :data:`ALPHAS` side by side and keeps the lowest cost if it is lower (then ``mu`` shrinks by 3,
-    else it grows by 4, within [1e-6, 1e10]). Returns the controls, states ``(T + 1, n)``, the feedback gains
-    ``(T, n)`` of a backward pass around them and the cost after each iteration ``(iterations,)``."""
+def trajectory_cost(problem: Problem, xs, us):
+    """Total cost of a trajectory's stored states ``(T + 1, n)`` and controls ``(T,)``, each stage's cost from
+    its own state (no re-simulation, so round-off cannot grow through a chaotic swing)."""
     import jax
     import jax.numpy as jnp
 
-    xs, cost = rollout(problem, x0, us)
+    return jax.vmap(problem.cost)(xs[:-1], us, jnp.arange(us.shape[0])).sum()
+
+
+def ilqr(problem: Problem, x0, us, iterations: int, mu: float = 1.0, xs=None):
+    """``iterations`` of control-limited iLQR from controls ``us`` ``(T,)`` in [-1, 1] (around the states ``xs``
+    ``(T + 1, n)`` they came with, if given; else around their rollout from ``x0``): each iteration tries the step
+    sizes :data:`ALPHAS` side by side and keeps the lowest cost if it is lower (then ``mu`` shrinks by 3, else it
+    grows by 4, within [1e-6, 1e10]). Returns the controls, states ``(T + 1, n)``, the feedback gains ``(T, n)``
+    of a backward pass around them (``mu`` at most its start) and the cost after each iteration
+    ``(iterations,)``."""
+    import jax
+    import jax.numpy as jnp
+
+    if xs is None:
+        xs, cost = rollout(problem, x0, us)
+    else:
+        cost = trajectory_cost(problem, xs, us)
 
     def iteration(carry, _):
         xs, us, cost, mu = carry
@@ -207,8 +221,8 @@ def ilqr(problem: Problem, x0, us, iterations: int, mu: float = 1.0):
         return carry, carry[2]
 
     start = (xs, us, cost, jnp.asarray(mu, xs.dtype))
-    (xs, us, _, mu), costs = jax.lax.scan(iteration, start, None, length=iterations)
-    _, gains, _, _ = backward_pass(problem, xs, us, mu)
+    (xs, us, _, last_mu), costs = jax.lax.scan(iteration, start, None, length=iterations)
+    _, gains, _, _ = backward_pass(problem, xs, us, jnp.minimum(last_mu, mu))
     return us, xs, gains, costs
 
 
@@ -228,10 +242,11 @@ def initial_controls(key, config: TrajoptConfig, batch: int, steps: int):
 
 
 def mppi_controls(p: AcrobotParams, planner: PlannerConfig, starts, seed: int = 0):
-    """The actions ``(B, EPISODE_STEPS // action_repeat)`` that :mod:`acrobot_ceiling`'s receding-horizon planner
-    takes from each start ``(B, 4)`` when its acting is simulated on the closed form (float64) instead of in
-    dm_control (the same states up to ~1e-12, see :func:`play_in_dm_control`'s deviations), planning in the
-    states' float64 where [81] planned in float32."""
+    """The actions ``(B, T)`` (``T = EPISODE_STEPS // action_repeat``) that :mod:`acrobot_ceiling`'s
+    receding-horizon planner takes from each start ``(B, 4)``, and the states ``(B, T + 1, 4)`` they lead to, when
+    its acting is simulated on the closed form (float64) instead of in dm_control (MuJoCo agrees to round-off a
+    step, which a chaotic swing can grow over an episode), planning in float64 where [81] planned in float32 and
+    acted in dm_control."""
     import jax
     import jax.numpy as jnp
 
@@ -245,56 +260,63 @@ def mppi_controls(p: AcrobotParams, planner: PlannerConfig, starts, seed: int = 
             for _ in range(planner.action_repeat):
                 q, v = ceiling.rk4_step(p, x[:2], x[2:], u)
                 x = jnp.concatenate([q, v])
-            return (x, jnp.concatenate([mean[1:], mean[-1:]])), u
+            return (x, jnp.concatenate([mean[1:], mean[-1:]])), (u, x)
 
         start = (x0, jnp.zeros(planner.horizon, x0.dtype))
-        return jax.lax.scan(agent_step, start, jax.random.split(key, steps))[1]
+        us, xs = jax.lax.scan(agent_step, start, jax.random.split(key, steps))[1]
+        return us, jnp.concatenate([x0[None], xs])
 
     keys = jax.random.split(jax.random.PRNGKey(seed), len(starts))
     return jax.jit(jax.vmap(episode))(jnp.asarray(starts, jnp.float64), keys)
 
 
-def closed_form_returns(p: AcrobotParams, repeat: int, starts, us):
-    """dm_control's return ``(...)`` of each action sequence ``(..., T)`` from its start ``(..., 4)`` under the
-    closed-form dynamics (rewards summed over every control step)."""
+def trajectory_returns(p: AcrobotParams, repeat: int, xs, us):
+    """dm_control's return ``(...)`` of trajectories' stored states ``(..., T + 1, 4)`` and controls ``(..., T)``
+    under the closed form: each agent step's rewards (summed over its control steps) from its own state."""
     import jax
 
-    problem, reward = acrobot_problem(p, repeat, 0.0, 0.0, 0.0)
-
-    def one(x0, us):
-        return jax.lax.scan(lambda x, u: (problem.dynamics(x, u), reward(x, u)), x0, us)[1].sum()
-
-    flat = jax.jit(jax.vmap(one))(starts.reshape(-1, 4), us.reshape(-1, us.shape[-1]))
+    _, reward = acrobot_problem(p, repeat, 0.0, 0.0, 0.0)
+    one = lambda xs, us: jax.vmap(reward)(xs[:-1], us).sum()
+    flat = jax.jit(jax.vmap(one))(xs.reshape(-1, *xs.shape[-2:]), us.reshape(-1, us.shape[-1]))
     return np.asarray(flat).reshape(us.shape[:-1])
 
 
-def optimise_episodes(p: AcrobotParams, config: TrajoptConfig, starts, us, stages=STAGES, progress: bool = True):
+def rollouts(p: AcrobotParams, repeat: int, starts, us):
+    """States ``(..., T + 1, 4)`` of action sequences ``(..., T)`` from their starts ``(..., 4)``."""
+    import jax
+
+    problem, _ = acrobot_problem(p, repeat, 0.0, 0.0, 0.0)
+    flat = jax.jit(jax.vmap(lambda x0, u: rollout(problem, x0, u)[0]))(
+        starts.reshape(-1, 4), us.reshape(-1, us.shape[-1]))
+    return np.asarray(flat).reshape(*us.shape[:-1], us.shape[-1] + 1, 4)
+
+
+def optimise_episodes(p: AcrobotParams, config: TrajoptConfig, xs, us, stages=STAGES, progress: bool = True):
     """Runs ``config.iterations`` iLQR iterations per stage of ``stages`` (``(energy_weight, height_weight)``
-    pairs, one after the other) from every initial sequence ``us`` ``(B, R, T)`` of each start ``(B, 4)`` and
-    keeps per start the sequence of the highest closed-form return. Returns controls ``(B, T)``, states
-    ``(B, T + 1, 4)``, feedback gains ``(B, T, 4)``, and the closed-form returns of every sequence ``(B, R)``."""
+    pairs, one after the other) from every initial trajectory, states ``xs`` ``(B, R, T + 1, 4)`` (each starting
+    at its start) and controls ``us`` ``(B, R, T)``, and keeps per start the trajectory of the highest closed-form
+    return (:func:`trajectory_returns`). Returns controls ``(B, T)``, states ``(B, T + 1, 4)``, feedback gains
+    ``(B, T, 4)``, and every trajectory's closed-form return ``(B, R)``."""
     import jax
     import jax.numpy as jnp
 
-    starts = jnp.asarray(starts, jnp.float64)
-    us = jnp.asarray(us, jnp.float64)
-    b, restarts, _ = us.shape
-    x0 = jnp.broadcast_to(starts[:, None], (b, restarts, 4))
+    xs, us = jnp.asarray(xs, jnp.float64), jnp.asarray(us, jnp.float64)
+    b = us.shape[0]
 
     def solve_one(weights, x, u):
         problem, _ = acrobot_problem(p, config.action_repeat, weights[0], weights[1], config.control_cost)
-        return ilqr(problem, x, u, config.iterations, config.mu)
+        return ilqr(problem, x[0], u, config.iterations, config.mu, xs=x)
 
     solve = jax.jit(jax.vmap(jax.vmap(solve_one, in_axes=(None, 0, 0)), in_axes=(None, 0, 0)))
     began = time.time()
     for number, weights in enumerate(stages):
-        us, xs, gains, _ = solve(jnp.asarray(weights, jnp.float64), x0, us)
+        us, xs, gains, _ = solve(jnp.asarray(weights, jnp.float64), xs, us)
         if progress:
-            got = closed_form_returns(p, config.action_repeat, x0, us)
+            got = trajectory_returns(p, config.action_repeat, xs, us)
             print(f"  stage {number + 1}/{len(stages)} (energy, height weights {weights}): best closed-form "
                   f"returns {np.round(got.max(axis=1), 1).tolist()} ({time.time() - began:.0f} s)",
                   file=sys.stderr, flush=True)
-    every = closed_form_returns(p, config.action_repeat, x0, us)
+    every = trajectory_returns(p, config.action_repeat, xs, us)
     pick = np.argmax(every, axis=1)
     take = lambda a: np.asarray(a)[np.arange(b), pick]
     return take(us), take(xs), take(gains), every
@@ -340,17 +362,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     starts = np.stack([np.concatenate([env.physics.data.qpos, env.physics.data.qvel]) for env in envs])
     steps = EPISODE_STEPS // config.action_repeat
     began = time.time()
-    if args.init == "mppi":
+    if args.init == "mppi":  # the planner's own trajectories (its states as it acted)
         config = config._replace(restarts=1)
-        us = np.asarray(mppi_controls(p, PlannerConfig(action_repeat=config.action_repeat), starts, args.seed))
-        us = us[:, None]
+        us, xs = mppi_controls(p, PlannerConfig(action_repeat=config.action_repeat), starts, args.seed)
+        us, xs = np.asarray(us)[:, None], np.asarray(xs)[:, None]
         stages = STAGES[-1:]
     else:
         us = np.asarray(initial_controls(jax.random.PRNGKey(args.seed), config, len(episodes), steps))
+        xs = rollouts(p, config.action_repeat, starts[:, None].repeat(config.restarts, 1), us)
         stages = STAGES
-    initial = closed_form_returns(p, config.action_repeat, starts[:, None].repeat(config.restarts, 1), us)
-    best_us, xs, gains, every = optimise_episodes(p, config, starts, us, stages)
-    rows = play_in_dm_control(ceiling.dm_control_envs(episodes), config, best_us, xs, gains)
+    initial = trajectory_returns(p, config.action_repeat, xs, us)
+    best_us, best_xs, gains, every = optimise_episodes(p, config, xs, us, stages)
+    rows = play_in_dm_control(ceiling.dm_control_envs(episodes), config, best_us, best_xs, gains)
     seconds = time.time() - began
     fields = ["episode", "init", "start_shoulder", "start_elbow", "initial_closed_form_return",
               "closed_form_return", "return", "control_steps_reward_above_0.9", "max_state_deviation",
