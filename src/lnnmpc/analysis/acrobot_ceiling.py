@@ -189,6 +189,19 @@ def energy_bounds(p: AcrobotParams) -> tuple[float, float]:
     return -up, up
 
 
+def shaping_terms(p: AcrobotParams, qpos, qvel):
+    """The planner's shaping terms ``(closeness, height)``, each ``(...)``, of angles and velocities ``(..., 2)``:
+    ``1 - |E - E_up| / (E_up - E_down)`` (E the mechanical energy, E_up the upright's at rest, E_down hanging at
+    rest) and the tip's height from its lowest (0) to its highest (1) point."""
+    import jax.numpy as jnp
+
+    down, up = energy_bounds(p)
+    reach = p.l1 + 2 * p.c2
+    height = 0.5 + 0.5 * (p.l1 * jnp.cos(qpos[..., 0]) + 2 * p.c2 * jnp.cos(qpos[..., 0] + qpos[..., 1])) / reach
+    closeness = 1.0 - jnp.abs(mechanical_energy(p, qpos, qvel) - up) / (up - down)
+    return closeness, height
+
+
 def sequence_scores(p: AcrobotParams, config: PlannerConfig, qpos, qvel, actions):
     """Scores ``(N,)`` of action sequences ``(N, horizon)`` (each action held ``action_repeat`` control steps) from
     one state (``qpos``, ``qvel`` ``(2,)``): the sum over every control step of the task's reward, plus
@@ -197,14 +210,10 @@ def sequence_scores(p: AcrobotParams, config: PlannerConfig, qpos, qvel, actions
     import jax
     import jax.numpy as jnp
 
-    down, up = energy_bounds(p)
-    reach = p.l1 + 2 * p.c2
-
     def agent_step(carry, action):
         def control_step(state, _):
             q, v = rk4_step(p, *state, action)
-            closeness = 1.0 - jnp.abs(mechanical_energy(p, q, v) - up) / (up - down)
-            height = 0.5 + 0.5 * (p.l1 * jnp.cos(q[..., 0]) + 2 * p.c2 * jnp.cos(q[..., 0] + q[..., 1])) / reach
+            closeness, height = shaping_terms(p, q, v)
             return (q, v), (tip_reward(p, q) + config.energy_weight * closeness
                             + config.height_weight * height)
 

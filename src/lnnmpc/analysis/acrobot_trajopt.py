@@ -81,15 +81,11 @@ def acrobot_problem(p: AcrobotParams, repeat: int, energy_weight: float, height_
     import jax
     import jax.numpy as jnp
 
-    down, up = ceiling.energy_bounds(p)
-    reach = p.l1 + 2 * p.c2
-
     def substeps(x, u):
         def control_step(state, _):
             q, v = ceiling.rk4_step(p, state[:2], state[2:], u)
             nxt = jnp.concatenate([q, v])
-            height = 0.5 + 0.5 * (p.l1 * jnp.cos(q[0]) + 2 * p.c2 * jnp.cos(q[0] + q[1])) / reach
-            closeness = 1.0 - jnp.abs(ceiling.mechanical_energy(p, q, v) - up) / (up - down)
+            closeness, height = ceiling.shaping_terms(p, q, v)
             return nxt, (ceiling.tip_reward(p, q), closeness, height)
 
         return jax.lax.scan(control_step, x, None, length=repeat)
