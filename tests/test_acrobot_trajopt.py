@@ -14,7 +14,7 @@ Q, R, T = np.eye(2), 0.1, 20
 
 def _lq_problem():
     return at.Problem(dynamics=lambda x, u: jnp.asarray(A) @ x + jnp.asarray(B) * u,
-                      cost=lambda x, u, t: x @ jnp.asarray(Q) @ x + R * u ** 2)
+                      cost=lambda x, u: x @ jnp.asarray(Q) @ x + R * u ** 2)
 
 
 def _riccati(x0):

@@ -230,14 +230,25 @@ def smooth_noise(key, config: PlannerConfig):
     """Standard normal noise ``(samples, horizon)`` drawn at knots every ``knot`` steps and linearly
     interpolated between them."""
     import jax
+
+    at_knots = jax.random.normal(key, (config.samples, knot_count(config.horizon, config.knot)))
+    return interpolate_knots(at_knots, config.horizon, config.knot)
+
+
+def knot_count(steps: int, knot: int) -> int:
+    """Knots every ``knot`` steps that cover ``steps`` steps (both ends included)."""
+    return -(-steps // knot) + 1
+
+
+def interpolate_knots(at_knots, steps: int, knot: int):
+    """Values ``(..., steps)`` linearly interpolated between values ``(..., knot_count(steps, knot))`` at knots
+    every ``knot`` steps."""
     import jax.numpy as jnp
 
-    knots = -(-config.horizon // config.knot) + 1
-    at_knots = jax.random.normal(key, (config.samples, knots))
-    steps = jnp.arange(config.horizon) / config.knot
-    left = jnp.floor(steps).astype(jnp.int32)
-    frac = steps - left
-    return at_knots[:, left] * (1 - frac) + at_knots[:, left + 1] * frac
+    pos = jnp.arange(steps) / knot
+    left = jnp.floor(pos).astype(jnp.int32)
+    frac = pos - left
+    return at_knots[..., left] * (1 - frac) + at_knots[..., left + 1] * frac
 
 
 def mppi_step(p: AcrobotParams, config: PlannerConfig, qpos, qvel, mean, key):

@@ -24,6 +24,7 @@ seconds of CPU per start); the returns under the closed form are reported beside
 from __future__ import annotations
 
 import csv
+import functools
 import sys
 import time
 from collections.abc import Sequence
@@ -66,7 +67,7 @@ class TrajoptConfig(NamedTuple):
 
 
 class Problem(NamedTuple):
-    """An iLQR problem: ``dynamics(x, u) -> x'`` and ``cost(x, u, t) -> scalar`` of one state ``(n,)`` and a scalar
+    """An iLQR problem: ``dynamics(x, u) -> x'`` and ``cost(x, u) -> scalar`` of one state ``(n,)`` and a scalar
     control in [-1, 1]; no terminal cost."""
 
     dynamics: object
@@ -93,7 +94,7 @@ def acrobot_problem(p: AcrobotParams, repeat: int, energy_weight: float, height_
     def dynamics(x, u):
         return substeps(x, u)[0]
 
-    def cost(x, u, t):
+    def cost(x, u):
         _, (reward, closeness, height) = substeps(x, u)
         shaped = reward + energy_weight * closeness + height_weight * height
         return control_cost * u ** 2 - shaped.sum()
@@ -109,11 +110,10 @@ def rollout(problem: Problem, x0, us):
     import jax
     import jax.numpy as jnp
 
-    def step(x, tu):
-        t, u = tu
-        return problem.dynamics(x, u), (x, problem.cost(x, u, t))
+    def step(x, u):
+        return problem.dynamics(x, u), (x, problem.cost(x, u))
 
-    last, (xs, costs) = jax.lax.scan(step, x0, (jnp.arange(us.shape[0]), us))
+    last, (xs, costs) = jax.lax.scan(step, x0, us)
     return jnp.concatenate([xs, last[None]]), costs.sum()
 
 
@@ -121,21 +121,19 @@ def backward_pass(problem: Problem, xs, us, mu):
     """One iLQR backward pass around the trajectory ``xs`` ``(T + 1, n)``, ``us`` ``(T,)``: the dynamics linearised,
     the cost expanded to second order, the value's Hessian regularised by ``mu`` (Tassa et al.), the scalar control
     clamped to [-1, 1] (a clamped step gets no feedback). Returns the feedforward ``k`` ``(T,)``, the gains ``K``
-    ``(T, n)``, the expected decrease ``(dv1, dv2)`` (cost change ``alpha dv1 + alpha^2 dv2``) and whether every
-    ``Q_uu`` was positive."""
+    ``(T, n)`` and whether every ``Q_uu`` was positive."""
     import jax
     import jax.numpy as jnp
 
     n = xs.shape[1]
-    ts = jnp.arange(us.shape[0])
     fx, fu = jax.vmap(jax.jacfwd(problem.dynamics, argnums=(0, 1)))(xs[:-1], us)
-    grads = jax.vmap(jax.grad(problem.cost, argnums=(0, 1)))(xs[:-1], us, ts)
-    hess = jax.vmap(jax.hessian(problem.cost, argnums=(0, 1)))(xs[:-1], us, ts)
+    grads = jax.vmap(jax.grad(problem.cost, argnums=(0, 1)))(xs[:-1], us)
+    hess = jax.vmap(jax.hessian(problem.cost, argnums=(0, 1)))(xs[:-1], us)
     lx, lu = grads
     (lxx, lxu), (lux, luu) = hess
 
     def step(carry, inputs):
-        vx, vxx, dv1, dv2, ok = carry
+        vx, vxx, ok = carry
         fx_t, fu_t, lx_t, lu_t, lxx_t, lxu_t, luu_t, u_t = inputs
         reg = vxx + mu * jnp.eye(n)
         qx = lx_t + fx_t.T @ vx
@@ -153,13 +151,11 @@ def backward_pass(problem: Problem, xs, us, mu):
         vx = qx + gain * quu_plain * k + gain * qu + qux_plain * k
         vxx = qxx + quu_plain * jnp.outer(gain, gain) + jnp.outer(gain, qux_plain) + jnp.outer(qux_plain, gain)
         vxx = 0.5 * (vxx + vxx.T)
-        return (vx, vxx, dv1 + k * qu, dv2 + 0.5 * k * quu_plain * k, ok), (k, gain)
+        return (vx, vxx, ok), (k, gain)
 
-    zero = jnp.zeros(n, xs.dtype)
-    carry = (zero, jnp.zeros((n, n), xs.dtype), jnp.zeros((), xs.dtype), jnp.zeros((), xs.dtype), jnp.array(True))
-    (_, _, dv1, dv2, ok), (k, gains) = jax.lax.scan(
-        step, carry, (fx, fu, lx, lu, lxx, lxu, luu, us), reverse=True)
-    return k, gains, (dv1, dv2), ok
+    carry = (jnp.zeros(n, xs.dtype), jnp.zeros((n, n), xs.dtype), jnp.array(True))
+    (_, _, ok), (k, gains) = jax.lax.scan(step, carry, (fx, fu, lx, lu, lxx, lxu, luu, us), reverse=True)
+    return k, gains, ok
 
 
 def forward_pass(problem: Problem, xs, us, k, gains, alpha):
@@ -168,12 +164,11 @@ def forward_pass(problem: Problem, xs, us, k, gains, alpha):
     import jax.numpy as jnp
 
     def step(x, inputs):
-        t, x_ref, u_ref, k_t, gain = inputs
+        x_ref, u_ref, k_t, gain = inputs
         u = jnp.clip(u_ref + alpha * k_t + gain @ (x - x_ref), -1.0, 1.0)
-        return problem.dynamics(x, u), (x, u, problem.cost(x, u, t))
+        return problem.dynamics(x, u), (x, u, problem.cost(x, u))
 
-    ts = jnp.arange(us.shape[0])
-    last, (new_xs, new_us, costs) = jax.lax.scan(step, xs[0], (ts, xs[:-1], us, k, gains))
+    last, (new_xs, new_us, costs) = jax.lax.scan(step, xs[0], (xs[:-1], us, k, gains))
     return new_us, jnp.concatenate([new_xs, last[None]]), costs.sum()
 
 
@@ -184,9 +179,8 @@ def trajectory_cost(problem: Problem, xs, us):
     """Total cost of a trajectory's stored states ``(T + 1, n)`` and controls ``(T,)``, each stage's cost from
     its own state (no re-simulation, so round-off cannot grow through a chaotic swing)."""
     import jax
-    import jax.numpy as jnp
 
-    return jax.vmap(problem.cost)(xs[:-1], us, jnp.arange(us.shape[0])).sum()
+    return jax.vmap(problem.cost)(xs[:-1], us).sum()
 
 
 def ilqr(problem: Problem, x0, us, iterations: int, mu: float = 1.0, xs=None):
@@ -206,7 +200,7 @@ def ilqr(problem: Problem, x0, us, iterations: int, mu: float = 1.0, xs=None):
 
     def iteration(carry, _):
         xs, us, cost, mu = carry
-        k, gains, _, ok = backward_pass(problem, xs, us, mu)
+        k, gains, ok = backward_pass(problem, xs, us, mu)
         tried_us, tried_xs, tried = jax.vmap(lambda a: forward_pass(problem, xs, us, k, gains, a))(
             jnp.asarray(ALPHAS, xs.dtype))
         best = jnp.argmin(tried)
@@ -218,7 +212,7 @@ def ilqr(problem: Problem, x0, us, iterations: int, mu: float = 1.0, xs=None):
 
     start = (xs, us, cost, jnp.asarray(mu, xs.dtype))
     (xs, us, _, last_mu), costs = jax.lax.scan(iteration, start, None, length=iterations)
-    _, gains, _, _ = backward_pass(problem, xs, us, jnp.minimum(last_mu, mu))
+    _, gains, _ = backward_pass(problem, xs, us, jnp.minimum(last_mu, mu))
     return us, xs, gains, costs
 
 
@@ -228,12 +222,9 @@ def initial_controls(key, config: TrajoptConfig, batch: int, steps: int):
     import jax
     import jax.numpy as jnp
 
-    knots = -(-steps // config.knot) + 1
+    knots = ceiling.knot_count(steps, config.knot)
     at_knots = config.init_std * jax.random.normal(key, (batch, config.restarts, knots), jnp.float64)
-    pos = jnp.arange(steps) / config.knot
-    left = jnp.floor(pos).astype(jnp.int32)
-    frac = pos - left
-    noise = at_knots[..., left] * (1 - frac) + at_knots[..., left + 1] * frac
+    noise = ceiling.interpolate_knots(at_knots, steps, config.knot)
     return jnp.clip(noise.at[:, 0].set(0.0), -1.0, 1.0)
 
 
@@ -269,12 +260,18 @@ def mppi_controls(p: AcrobotParams, planner: PlannerConfig, starts, seed: int = 
 def trajectory_returns(p: AcrobotParams, repeat: int, xs, us):
     """dm_control's return ``(...)`` of trajectories' stored states ``(..., T + 1, 4)`` and controls ``(..., T)``
     under the closed form: each agent step's rewards (summed over its control steps) from its own state."""
+    flat = _returns_program(p, repeat)(xs.reshape(-1, *xs.shape[-2:]), us.reshape(-1, us.shape[-1]))
+    return np.asarray(flat).reshape(us.shape[:-1])
+
+
+@functools.lru_cache(maxsize=8)
+def _returns_program(p: AcrobotParams, repeat: int):
+    """:func:`trajectory_returns`' jitted program over a batch, built once per chain and action repeat (it is
+    called after every stage)."""
     import jax
 
     _, reward = acrobot_problem(p, repeat, 0.0, 0.0, 0.0)
-    one = lambda xs, us: jax.vmap(reward)(xs[:-1], us).sum()
-    flat = jax.jit(jax.vmap(one))(xs.reshape(-1, *xs.shape[-2:]), us.reshape(-1, us.shape[-1]))
-    return np.asarray(flat).reshape(us.shape[:-1])
+    return jax.jit(jax.vmap(lambda xs, us: jax.vmap(reward)(xs[:-1], us).sum()))
 
 
 def rollouts(p: AcrobotParams, repeat: int, starts, us):
@@ -369,7 +366,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         stages = STAGES
     initial = trajectory_returns(p, config.action_repeat, xs, us)
     best_us, best_xs, gains, every = optimise_episodes(p, config, xs, us, stages)
-    rows = play_in_dm_control(ceiling.dm_control_envs(episodes), config, best_us, best_xs, gains)
+    rows = play_in_dm_control(envs, config, best_us, best_xs, gains)  # still at their starts
     seconds = time.time() - began
     fields = ["episode", "init", "start_shoulder", "start_elbow", "initial_closed_form_return",
               "closed_form_return", "return", "control_steps_reward_above_0.9", "max_state_deviation",
