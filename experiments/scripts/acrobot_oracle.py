@@ -60,12 +60,16 @@ def mechanical_energy(env, data) -> jax.Array:
     return kinetic + potential
 
 
+def state_energy(env):
+    """A jitted ``energy(qpos, qvel)``: :func:`mechanical_energy` of the state ``env.reset_to`` puts the acrobot in
+    (one compiled program; MJX's forward pass run op by op costs ~30 s of small compilations on a CPU)."""
+    return jax.jit(lambda qpos, qvel: mechanical_energy(env, env.reset_to(qpos, qvel).physics))
+
+
 def energy_range(env) -> tuple[float, float]:
     """The energies at rest hanging down (shoulder pi) and balanced upright (all angles 0)."""
-    # one compiled program for both (MJX's forward pass run op by op costs ~30 s of small compilations on a CPU)
-    at_rest = jax.jit(lambda shoulder: mechanical_energy(env, env.reset_to(jnp.stack([shoulder, 0.0]),
-                                                                            jnp.zeros(2)).physics))
-    return float(at_rest(jnp.pi)), float(at_rest(0.0))
+    energy = state_energy(env)
+    return float(energy(jnp.array([jnp.pi, 0.0]), jnp.zeros(2))), float(energy(jnp.zeros(2), jnp.zeros(2)))
 
 
 def planning_model(env, shaping: str, weight: float):
