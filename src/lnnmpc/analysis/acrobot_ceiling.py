@@ -276,18 +276,21 @@ def mppi_step(p: AcrobotParams, config: PlannerConfig, qpos, qvel, mean, key):
     return mean
 
 
-def make_planner(p: AcrobotParams, config: PlannerConfig):
-    """A jitted ``plan(qpos, qvel, mean, key) -> (action, next mean)`` over episodes side by side (leading axis
-    ``B``): the action ``(B,)`` to hold for the next agent step and the mean shifted by one step for the next call
-    (its last step repeated)."""
-    import jax
+def plan_and_shift(p: AcrobotParams, config: PlannerConfig, qpos, qvel, mean, key):
+    """One receding-horizon decision of one episode: (the action () to hold for the next agent step, the
+    :func:`mppi_step` mean ``(horizon,)`` shifted by one step for the next decision, its last step repeated)."""
     import jax.numpy as jnp
 
-    def plan_one(qpos, qvel, mean, key):
-        mean = mppi_step(p, config, qpos, qvel, mean, key)
-        return mean[0], jnp.concatenate([mean[1:], mean[-1:]])
+    mean = mppi_step(p, config, qpos, qvel, mean, key)
+    return mean[0], jnp.concatenate([mean[1:], mean[-1:]])
 
-    return jax.jit(jax.vmap(plan_one))
+
+def make_planner(p: AcrobotParams, config: PlannerConfig):
+    """A jitted ``plan(qpos, qvel, mean, key) -> (action, next mean)`` (:func:`plan_and_shift`) over episodes side
+    by side (leading axis ``B``)."""
+    import jax
+
+    return jax.jit(jax.vmap(lambda qpos, qvel, mean, key: plan_and_shift(p, config, qpos, qvel, mean, key)))
 
 
 def dm_control_envs(episodes: Sequence[int]):

@@ -242,12 +242,11 @@ def mppi_controls(p: AcrobotParams, planner: PlannerConfig, starts, seed: int = 
     def episode(x0, key):
         def agent_step(carry, key):
             x, mean = carry
-            mean = ceiling.mppi_step(p, planner, x[:2], x[2:], mean, key)
-            u = mean[0]
+            u, mean = ceiling.plan_and_shift(p, planner, x[:2], x[2:], mean, key)
             for _ in range(planner.action_repeat):
                 q, v = ceiling.rk4_step(p, x[:2], x[2:], u)
                 x = jnp.concatenate([q, v])
-            return (x, jnp.concatenate([mean[1:], mean[-1:]])), (u, x)
+            return (x, mean), (u, x)
 
         start = (x0, jnp.zeros(planner.horizon, x0.dtype))
         us, xs = jax.lax.scan(agent_step, start, jax.random.split(key, steps))[1]
