@@ -33,10 +33,9 @@ import numpy as np
 from lnnmpc import envs
 from lnnmpc.agents.exploration import colored_noise
 from lnnmpc.agents.mppi import MPPIConfig, PlanningModel, mppi_plan
-from lnnmpc.analysis.cartpole import episode_stats
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from random_exploration_sparse import lag1_autocorrelation, play, save_rows  # noqa: E402
+from random_exploration_sparse import lag1_autocorrelation, outcome_columns, play, save_rows  # noqa: E402
 
 KINDS = ("white", "pink", "mean-pink")
 TINY = 1e-6
@@ -105,13 +104,8 @@ def main(argv: list[str] | None = None) -> int:
         actions, std0 = planner_actions(kind, jax.random.key(1000 + args.seed), args.episodes, steps,
                                         env.action_size, config)
         rewards, qpos = play(env, keys, actions)
-        returns = rewards.sum(axis=1)
-        stats = episode_stats(qpos)
-        rows.append({"kind": kind, "episodes": args.episodes, "share_with_reward": float((returns > 0).mean()),
-                     "mean_return": float(returns.mean()), "max_return": float(returns.max()),
-                     "sparse_region_share": float(stats["sparse_region_share"].mean()),
-                     "turns": float(stats["turns"].mean()), "mean_std0": float(std0.mean()),
-                     "mean_abs_action": float(np.abs(actions).mean()),
+        rows.append({"kind": kind, "episodes": args.episodes, **outcome_columns(rewards, qpos),
+                     "mean_std0": float(std0.mean()), "mean_abs_action": float(np.abs(actions).mean()),
                      "lag1_autocorrelation": lag1_autocorrelation(actions[..., 0].T)})
         r = rows[-1]
         print(f"{kind:9s} episodes with reward {r['share_with_reward']:.3f}  mean return {r['mean_return']:7.2f}  "

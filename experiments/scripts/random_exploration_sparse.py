@@ -77,6 +77,17 @@ def lag1_autocorrelation(x: np.ndarray) -> float:
     return float(((x[:, 1:] * x[:, :-1]).sum(axis=1) / np.maximum((x * x).sum(axis=1), 1e-12)).mean())
 
 
+def outcome_columns(rewards: np.ndarray, qpos: np.ndarray) -> dict[str, float]:
+    """A CSV row's outcome columns of episodes with ``rewards`` (episodes, steps) and joint positions ``qpos``
+    (episodes, steps, 2): the share of episodes with any reward, the mean and largest return, and the mean of
+    :func:`episode_stats`' sparse-region share and turns."""
+    returns = rewards.sum(axis=1)
+    stats = episode_stats(qpos)
+    return {"share_with_reward": float((returns > 0).mean()), "mean_return": float(returns.mean()),
+            "max_return": float(returns.max()), "sparse_region_share": float(stats["sparse_region_share"].mean()),
+            "turns": float(stats["turns"].mean())}
+
+
 def save_rows(rows: list[dict], path: str) -> None:
     """``rows`` as the CSV ``path`` (its folder made; written atomically), and a line saying so."""
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
@@ -98,13 +109,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for kind in KINDS:
         rewards, qpos = play(env, keys, random_actions(kind, rng, args.episodes, steps, args.scale))
-        returns = rewards.sum(axis=1)
-        stats = episode_stats(qpos)
         rows.append({"kind": kind, "beta": "" if KINDS[kind] is None else KINDS[kind], "scale": args.scale,
-                     "episodes": args.episodes, "share_with_reward": float((returns > 0).mean()),
-                     "mean_return": float(returns.mean()), "max_return": float(returns.max()),
-                     "sparse_region_share": float(stats["sparse_region_share"].mean()),
-                     "turns": float(stats["turns"].mean())})
+                     "episodes": args.episodes, **outcome_columns(rewards, qpos)})
         r = rows[-1]
         print(f"{kind:8s} episodes with reward {r['share_with_reward']:.3f}  mean return {r['mean_return']:7.2f}  "
               f"max {r['max_return']:7.1f}  in region {r['sparse_region_share']:.4f}  turns {r['turns']:.2f}")
