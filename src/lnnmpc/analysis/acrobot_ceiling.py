@@ -277,8 +277,8 @@ def mppi_step(p: AcrobotParams, config: PlannerConfig, qpos, qvel, mean, key):
 
 
 def plan_and_shift(p: AcrobotParams, config: PlannerConfig, qpos, qvel, mean, key):
-    """One receding-horizon decision of one episode: (the action () to hold for the next agent step, the
-    :func:`mppi_step` mean ``(horizon,)`` shifted by one step for the next decision, its last step repeated)."""
+    """One receding-horizon decision of one episode: the action (a scalar) to hold for the next agent step, and
+    :func:`mppi_step`'s mean ``(horizon,)`` shifted by one step for the next decision (its last step repeated)."""
     import jax.numpy as jnp
 
     mean = mppi_step(p, config, qpos, qvel, mean, key)
