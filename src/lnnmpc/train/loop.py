@@ -264,7 +264,8 @@ class TrainingLoop:
     # -------------------------------------------------------------------------------------- evaluate
     def evaluate(self, agent: Any, key: jax.Array) -> jax.Array:
         """Returns (eval_episodes,) of deterministic MPPI episodes, run in parallel, each with its own seed
-        (episode i's from ``fold_in(key, i)``: more episodes with the same key extend the set)."""
+        (episode i's from ``fold_in(key, i)``: more episodes with the same key extend the set of initial states;
+        another batch width is another program, whose round-off can move a chaotic episode's return)."""
         return self._eval_episodes(agent, key, latents=False)[0]
 
     def evaluate_with_rank(self, agent: Any, key: jax.Array) -> tuple[jax.Array, jax.Array]:
