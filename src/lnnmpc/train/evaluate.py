@@ -183,7 +183,8 @@ def mjx_evaluator(agent, env, episodes: int, seeds: int):
     """A compiled evaluation of ``episodes`` deterministic episodes per seed on MJX ``env``, acting with
     ``agent.act`` (MPPI; the prior alone under :func:`lnnmpc.agents.actor.with_actor`): returns
     ``run(agent_state, key) -> (seeds, episodes)`` returns, the seeds' keys split from ``key``; the episodes are
-    those the trainer's evaluations play with the same key (:func:`lnnmpc.train.loop.play_episodes`). Call ``run``
+    those the trainer's evaluations play with the same key (:func:`lnnmpc.train.loop.play_episodes`; their returns
+    bit for bit only at the trainer's episode count: another batch width rounds differently). Call ``run``
     for as many agent states as needed; a later evaluator of an equal agent configuration, environment and sizes
     in the same process runs the same compiled program."""
     placement = SeedPlacement(1)
