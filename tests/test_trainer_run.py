@@ -382,12 +382,13 @@ def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
 
     enable_compile_cache(cache)
     policy = load_policy(str(reference))
-    evaluate = mjx_evaluator(policy.loop.agent, policy.loop.eval_env, episodes=policy.config.eval_episodes, seeds=2)
+    shape = (policy.config.seeds, policy.config.eval_episodes)  # (2, 2): the reference run's
+    evaluate = mjx_evaluator(policy.loop.agent, policy.loop.eval_env, episodes=shape[1], seeds=shape[0])
     rows = _rows(reference / "eval.csv")
     chain = jax.random.key(policy.config.seed + 10_000)
     for step in CHECKPOINTS:
         chain, key = jax.random.split(chain)
-        logged = np.zeros((2, 2))
+        logged = np.zeros(shape)
         for row in (r for r in rows if int(r["env_step"]) == step):
             logged[int(row["seed"]), int(row["episode"])] = float(row["return"])
         replayed = evaluate(policy_at(policy, str(reference), step).agent_state, key)
