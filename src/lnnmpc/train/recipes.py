@@ -70,7 +70,7 @@ def _text(value: Any) -> str:
 
 _RESULTS = "experiments/results"
 _BATCH71 = f"{_RESULTS}/cfc-cartpole-nv-recipe-lrdecay-seed0-sparse-lambda0-lrdecay-seed3-h200-200k"
-_BATCH77 = f"{_RESULTS}/cfc-acrobot-recipe-utd2-h200-200k"
+_BATCH84 = f"{_RESULTS}/cfc-acrobot-recipe-ar4-ar8-h100-200k"
 
 RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
     Recipe(
@@ -101,19 +101,19 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
               f"{_BATCH71}/cp-nv-recipe-lrdecay-seed0")),
     Recipe(
         name="acrobot", task="acrobot-swingup", agent="cfc-zp-det",
-        train={"envs": 16, "explore_noise_beta": 1.0, "updates_per_step": 2},
+        train={"envs": 16, "explore_noise_beta": 1.0, "updates_per_step": 2, "action_repeat": 4},
         overrides={"rollout_steps": 6, "rollout_stride": 3, "lambda_": 0, "horizon": 16,
                    "learn_episode_starts": True, "latent_head": "simnorm", "latent_size": 256,
-                   "lr_decay_begin": 100_000, "lr_decay_end": 200_000, "lr_final_scale": 0.1},
-        measured=("acrobot-swingup: 435.6 / 387.4 / 620.4 at 200K on master seeds 1-3 (one seed each; 481.1 over the "
-                  "three; dm_control 456.1), RESULTS.md [77]: the best acrobot line measured, far under the thesis's "
-                  "883; TD-MPC2 278.1 here. Two updates per agent step; with one (the decay over updates 50K-100K, "
-                  "the same environment steps) the same master seeds ended at 346.4 / 425.9 / 426.6 (399.6; "
-                  "dm_control 378.1; master seed 0: 578.3) [72], [73], and on one set of 20 episodes the final "
-                  "policies score 372.1 against 324.0. Walker's training window and latent head, model losses 6 "
-                  "steps deep, pink exploration noise ([55], [64]), and the learning rate decayed to 0.1 x over "
-                  "environment steps 100K-200K. Costs 1.8 x the time per environment step of one update per step."),
-        runs=tuple(f"{_BATCH77}/acrobot-recipe-utd2-seed{seed}" for seed in (1, 2, 3))),
+                   "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1},
+        measured=("acrobot-swingup: 655.9 / 620.6 / 651.5 at 200K on master seeds 1-3 (one seed each; 642.7 over the "
+                  "three; dm_control 621.4 / 580.8 on master seeds 1-2), RESULTS.md [84]: the best acrobot line "
+                  "measured, under issue #5's 700 and the thesis's 883; TD-MPC2 278.1 here. Acting every 4 control "
+                  "steps: acting every 2 the same master seeds ended at 435.6 / 387.4 / 620.4 (481.1; dm_control "
+                  "456.1) [77], every 8 at 484.6 / 584.1 / 666.8 (578.5) [84]. Two updates per agent step (one: "
+                  "399.6 at action repeat 2 [73]), walker's training window and latent head, model losses 6 steps "
+                  "deep, pink exploration noise ([55], [64]), and the learning rate decayed to 0.1 x over updates "
+                  "50K-100K (environment steps 100K-200K). 1.9 x the environment steps per second of acting every 2."),
+        runs=tuple(f"{_BATCH84}/acrobot-recipe-ar4-seed{seed}" for seed in (1, 2, 3))),
 )}
 
 
