@@ -22,6 +22,8 @@ times the closeness of the mechanical energy to the upright's at rest and ``--he
 height, which let it pump energy where the task's reward, ~1e-14 hanging down, ranks nothing; the returns
 reported are dm_control's own rewards only. Measured (RESULTS.md [81]): 559.2 on the evaluation's starts 0-9 and
 571.8 over starts 0-39 with these defaults; a 3 s horizon with 1024 samples and 4 iterations scored lower (442.7).
+It is no ceiling: the ``acrobot`` recipe acting every 4 control steps scores 588.3 on starts 0-9 over three final
+policies, above this planner on 9 of the 10 (RESULTS.md [84]).
 """
 
 from __future__ import annotations

@@ -106,7 +106,7 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                    "learn_episode_starts": True, "latent_head": "simnorm", "latent_size": 256,
                    "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1},
         measured=("acrobot-swingup: 655.9 / 620.6 / 651.5 at 200K on master seeds 1-3 (one seed each; 642.7 over the "
-                  "three; dm_control 621.4 / 580.8 on master seeds 1-2), RESULTS.md [84]: the best acrobot line "
+                  "three; dm_control 621.4 / 580.8 / 562.7, 588.3), RESULTS.md [84]: the best acrobot line "
                   "measured, under issue #5's 700 and the thesis's 883; TD-MPC2 278.1 here. Acting every 4 control "
                   "steps: acting every 2 the same master seeds ended at 435.6 / 387.4 / 620.4 (481.1; dm_control "
                   "456.1) [77], every 8 at 484.6 / 584.1 / 666.8 (578.5) [84]. Two updates per agent step (one: "
