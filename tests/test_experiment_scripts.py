@@ -105,7 +105,7 @@ def test_oracle_energy_matches_mujoco_and_bad_arguments_are_refused(capsys):
     assert "--episodes and --chunk must be >= 1" in capsys.readouterr().err
 
 
-def test_value_calibration_returns_to_go_and_summaries_against_direct_sums():
+def test_value_calibration_returns_to_go_and_summaries_against_direct_sums(capsys):
     script = _script("value_calibration")
     rng = np.random.default_rng(0)
     rewards = rng.uniform(0, 2, (3, 40))
@@ -117,6 +117,9 @@ def test_value_calibration_returns_to_go_and_summaries_against_direct_sums():
     last = kept - 1  # the last step kept: its return misses at most 5%, the next step's more
     assert 0.99 ** (500 - last) <= 0.05 < 0.99 ** (500 - last - 1) and kept == 202
     assert script.uncut_steps(10, 0.99) == 0
+    assert script.uncut_steps(250, 0.99) == 0 and script.uncut_steps(250, 0.99, 0.1) == 21  # action repeat 4
+    assert script.main(["no-such-run", "--tail", "1.5"]) == 2  # refused before the run is read
+    assert "--tail must lie in (0, 1), got 1.5" in capsys.readouterr().err
     q = direct + 1.0
     keep = np.zeros_like(q, bool)
     keep[:, :5] = True

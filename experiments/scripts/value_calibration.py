@@ -1,7 +1,7 @@
 """How well a run's critic knows what its acting earns: Q(z_t, a_t) against the discounted return that followed.
 
     python experiments/scripts/value_calibration.py RUN [--episodes 4] [--hanging SIGMA] [--checkpoint STEP]
-        [--actor planner|prior] [--out DIR]
+        [--actor planner|prior] [--tail 0.05] [--out DIR]
 
 Plays seed 0's policy for ``--episodes`` deterministic episodes (MJX, the evaluation protocol,
 :func:`lnnmpc.analysis.rollout.rollout`, key 0; with ``--hanging SIGMA`` on acrobot from starts hanging at rest,
@@ -10,9 +10,10 @@ planned from and the action it played: the mean and the minimum over all Q heads
 policy prior alone (its mean action), whose continuation the critic's targets value (TD-MPC2 bootstraps with the
 prior's action), so that Q and G then describe the same behaviour. It compares them with the
 discounted return that followed, G_t = sum_k gamma^k r_{t+k} (float64; the steps whose discount to the episode's
-end is above 0.05 are left out of the summary, since the time limit cuts their return). On acrobot the steps are
-split by whether the tip is above the shoulder: does the critic value the pumping phase, hanging low, as what it
-leads to? Writes ``calibration.csv`` (one row per episode and step) and ``calibration.png`` (Q and G over each
+end is above ``--tail``, 0.05, are left out of the summary, since the time limit cuts their return: at gamma 0.99
+that keeps the first 202 of 500 agent steps, and none of 250 at action repeat 4, which is refused). On acrobot the
+steps are split by whether the tip is above the shoulder: does the critic value the pumping phase, hanging low, as
+what it leads to? Writes ``calibration.csv`` (one row per episode and step) and ``calibration.png`` (Q and G over each
 episode) to ``--out`` (default <run>/analysis/<step>/value_calibration/) and prints the summary per phase.
 ``value_vs_return.py`` makes the same comparison as one row per seed (with the reward head's); this one keeps every
 step of seed 0, splits acrobot's by the tip's height, plays hanging starts or the prior alone, and plots.
@@ -106,8 +107,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--hanging", type=float, default=None, metavar="SIGMA")
     p.add_argument("--checkpoint", type=int, default=None)
     p.add_argument("--actor", default="planner", choices=("planner", "prior"))
+    p.add_argument("--tail", type=float, default=0.05,
+                   help="leave out the steps whose discount to the episode's end is above this (0 < TAIL < 1)")
     p.add_argument("--out", default=None)
     args = p.parse_args(argv)
+    if not 0 < args.tail < 1:
+        print(f"--tail must lie in (0, 1), got {args.tail}", file=sys.stderr)
+        return 2
     from lnnmpc.agents.actor import with_actor
     from lnnmpc.analysis.rollout import rollout
     from lnnmpc.envs.env import Env
@@ -123,13 +129,16 @@ def main(argv: list[str] | None = None) -> int:
         Env.initial_qpos_qvel = _hanging_init(args.hanging)  # before anything traces a reset
     policy = load_policy(args.run, args.checkpoint)
     agent, state = policy.loop.agent, policy.seed_state(0)
+    gamma, steps = float(agent.config.gamma), policy.loop.eval_env.episode_length
+    if uncut_steps(steps, gamma, args.tail) == 0:
+        print(f"no step of a {steps}-step episode has a discount to its end of at most --tail {args.tail} at gamma "
+              f"{gamma}: the time limit cuts every return; give a --tail above {gamma ** steps:.3g}", file=sys.stderr)
+        return 2
     records = rollout(with_actor(agent, args.actor), state, policy.loop.eval_env, jax.random.key(0), args.episodes)
     q_mean, q_min = critic_values(agent, state, records["latent"], records["action"])
-    gamma = float(agent.config.gamma)
     g = discounted_returns(records["reward"], gamma)
-    steps = g.shape[1]
     keep = np.zeros_like(g, bool)
-    keep[:, : uncut_steps(steps, gamma)] = True
+    keep[:, : uncut_steps(steps, gamma, args.tail)] = True
     above = None
     phases = {"all": keep}
     if task.startswith("acrobot"):
@@ -149,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.run} (step {policy.checkpoint}, seed 0, {args.actor} acting), {args.episodes} episodes from "
           f"{starts}, gamma {gamma}; "
           f"returns {' '.join(f'{r:.0f}' for r in records['reward'].sum(axis=1))}; the first "
-          f"{uncut_steps(steps, gamma)} of {steps} steps kept")
+          f"{uncut_steps(steps, gamma, args.tail)} of {steps} steps kept")
     for name, mask in phases.items():
         s = phase_summary(q_mean, g, mask)
         s_min = phase_summary(q_min, g, mask)
