@@ -130,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     policy = load_policy(args.run, args.checkpoint)
     agent, state = policy.loop.agent, policy.seed_state(0)
     gamma, steps = float(agent.config.gamma), policy.loop.eval_env.episode_length
-    if uncut_steps(steps, gamma, args.tail) == 0:
+    kept = uncut_steps(steps, gamma, args.tail)
+    if kept == 0:
         print(f"no step of a {steps}-step episode has a discount to its end of at most --tail {args.tail} at gamma "
               f"{gamma}: the time limit cuts every return; give a --tail above {gamma ** steps:.3g}", file=sys.stderr)
         return 2
@@ -138,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     q_mean, q_min = critic_values(agent, state, records["latent"], records["action"])
     g = discounted_returns(records["reward"], gamma)
     keep = np.zeros_like(g, bool)
-    keep[:, : uncut_steps(steps, gamma, args.tail)] = True
+    keep[:, :kept] = True
     above = None
     phases = {"all": keep}
     if task.startswith("acrobot"):
@@ -158,7 +159,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"{args.run} (step {policy.checkpoint}, seed 0, {args.actor} acting), {args.episodes} episodes from "
           f"{starts}, gamma {gamma}; "
           f"returns {' '.join(f'{r:.0f}' for r in records['reward'].sum(axis=1))}; the first "
-          f"{uncut_steps(steps, gamma, args.tail)} of {steps} steps kept")
+          f"{kept} of {steps} steps kept")
     for name, mask in phases.items():
         s = phase_summary(q_mean, g, mask)
         s_min = phase_summary(q_min, g, mask)
