@@ -260,6 +260,8 @@ def test_acrobot_episode_stats_of_known_trajectories(tmp_path, capsys):
     arc = 2 * np.arcsin(0.05) / np.pi  # the outstretched tip within 0.2 of the target: 4 |sin(θ / 2)| <= 0.2
     np.testing.assert_allclose(stats["target_share"], [1, 0, arc, 0.5], atol=2e-3)
     np.testing.assert_allclose(stats["longest_target_stay"], [1, 0, arc / 3, 0.5], atol=2e-3)  # one pass a turn
+    # the whirl (3 turns from hanging) first enters the target half a turn less half the arc in: t = (1/2 - arc/2) / 3
+    np.testing.assert_allclose(stats["before_target_share"], [0, 1, (0.5 - arc / 2) / 3, 0.5], atol=2e-3)
     np.testing.assert_allclose(stats["tip_above_share"], [1, 0, 0.5, 0.5], atol=2e-3)
     np.testing.assert_allclose(stats["mean_tip_distance"][[0, 1, 3]], [0, 4, 2], atol=1e-9)
     # eq. 4.6 pays hanging as upright; over a whirl's turns 0.5 |cos| averages 1 / π, the still elbow adds 0.5

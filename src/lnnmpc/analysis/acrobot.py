@@ -13,6 +13,8 @@ key for every seed) with each trained seed of an acrobot run and reports what a 
   pays and acrobot-swingup pays fully;
 * ``longest_target_stay``: the longest run of consecutive agent steps in the target, as a share of the episode:
   balancing shows as one long stay, whirling as many short passes;
+* ``before_target_share``: the share of the episode before the tip first enters the target (1: never); with one
+  long stay to the end it is the swing-up's time, the return's main cost;
 * ``mean_tip_distance``: the mean distance of the tip from the target;
 * ``thesis_reward_mean``: the mean per agent step of the thesis's acrobot reward (its eq. 4.6,
   :func:`lnnmpc.analysis.thesis_acrobot.thesis_reward`), which pays a hanging chain as fully as an upright one;
@@ -37,7 +39,8 @@ from lnnmpc.analysis.thesis_acrobot import thesis_reward
 COLUMNS: tuple[episodes_.Column, ...] = (
     ("shoulder turns", "shoulder_turns", ".1f"), ("elbow turns", "elbow_turns", ".1f"),
     ("tip above shoulder", "tip_above_share", ".3f"), ("in target", "target_share", ".3f"),
-    ("longest stay in target", "longest_target_stay", ".3f"), ("mean tip distance", "mean_tip_distance", ".2f"),
+    ("longest stay in target", "longest_target_stay", ".3f"), ("before first in target", "before_target_share", ".3f"),
+    ("mean tip distance", "mean_tip_distance", ".2f"),
     ("eq. 4.6 reward per step", "thesis_reward_mean", ".3f"))
 STATS = tuple(key for _, key, _ in COLUMNS)
 
@@ -82,9 +85,11 @@ def episode_stats(qpos: np.ndarray) -> dict[str, np.ndarray]:
     tips, shoulder, target, radius = tip_positions(qpos)
     distance = np.linalg.norm(tips - target, axis=-1)
     inside = distance <= radius
+    first_inside = np.where(inside.any(axis=1), inside.argmax(axis=1), qpos.shape[1])
     return {"shoulder_turns": turns[:, 0], "elbow_turns": turns[:, 1],
             "tip_above_share": (tips[..., 2] > shoulder[2]).mean(axis=1), "target_share": inside.mean(axis=1),
-            "longest_target_stay": longest_stay(inside) / qpos.shape[1], "mean_tip_distance": distance.mean(axis=1),
+            "longest_target_stay": longest_stay(inside) / qpos.shape[1],
+            "before_target_share": first_inside / qpos.shape[1], "mean_tip_distance": distance.mean(axis=1),
             "thesis_reward_mean": thesis_reward(qpos[..., 0], qpos[..., 1]).mean(axis=1)}
 
 
