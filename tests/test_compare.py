@@ -9,7 +9,7 @@ import os
 import pytest
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.compare import load_curves, main, metric_series, reference_lines, shared_references
+from lnnmpc.train.compare import load_curves, main, metric_series, panel_title, reference_lines, shared_references
 from lnnmpc.train.config import ConfigError, TrainConfig
 
 
@@ -39,6 +39,15 @@ def test_compare_plots_each_run_and_writes_the_numbers(tmp_path):
         rows = list(csv.DictReader(f))
     assert [(r["label"], r["env_step"], float(r["mean"])) for r in rows] == [
         ("baseline", "10000", 350.0), ("baseline", "20000", 700.0), ("liquid", "10000", 100.0)]
+
+
+def test_compare_breaks_a_long_title_into_lines_that_fit_the_panel():
+    assert panel_title("acrobot-swingup, cfc-zp-det") == "acrobot-swingup, cfc-zp-det"
+    long = "acrobot-swingup, acrobot recipe (action repeat 4): 2 / 3 updates per agent step"
+    lines = panel_title(long).split("\n")
+    assert len(lines) == 2 and all(len(line) <= 55 for line in lines)
+    assert " ".join(lines) == long  # broken at spaces only, nothing lost
+    assert panel_title("x" * 70) == "x" * 70  # a word longer than the width stays whole
 
 
 def test_compare_pools_one_configurations_runs_into_one_more_curve(tmp_path, capsys):

@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import textwrap
 
 import numpy as np
 
@@ -203,6 +204,12 @@ def reference_lines(curves: list[dict]) -> list[tuple[str, float, object]]:
             for i, (label, value) in enumerate(shared_references(curves).items())]
 
 
+def panel_title(title: str, width: int = 55) -> str:
+    """``title`` broken at spaces into lines of at most ``width`` characters (a longer word stays whole): the return
+    panel is ~5 inches wide, and a longer line ran off the figure's left edge."""
+    return textwrap.fill(title, width=width, break_long_words=False, break_on_hyphens=False)
+
+
 def write_comparison(curves: list[dict], out: str, title: str | None = None,
                      metrics: dict[str, list[dict]] | None = None) -> tuple[str, ...]:
     """Writes the figure ``out`` and its numbers ``<out without extension>.csv`` (with ``metrics``, from
@@ -244,7 +251,7 @@ def write_comparison(curves: list[dict], out: str, title: str | None = None,
     spread = "seeds;\nover episodes for a one-seed run" if one_seed else "seeds"
     column = curves[0].get("column", "return")
     ax.set(xlabel="environment steps", ylabel=f"evaluation {column} (mean ± std over {spread})",
-           title=title or ", ".join(tasks), ylim=(0, 1000))
+           title=panel_title(title or ", ".join(tasks)), ylim=(0, 1000))
     ax.grid(alpha=0.3)
     if outside and metrics:
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(0.0, -0.15), ncols=2)
