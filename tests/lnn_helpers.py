@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 
 from lnnmpc.agents.registry import make_agent
 
@@ -18,3 +19,23 @@ def tiny_agent(name: str, obs_dim: int, action_dim: int, **overrides):
 def quick_jit(fn, **kwargs):
     """``jax.jit`` with XLA's CPU backend optimisations off: half the compile time, which dominates these tests."""
     return jax.jit(fn, compiler_options={"xla_backend_optimization_level": 0}, **kwargs)
+
+
+# The agent tests' shapes: observations of 5, actions of 2, batches of 8 windows.
+OBS, ACT, B = 5, 2, 8
+
+
+def tiny(name: str, **overrides):
+    """A tiny agent ``name`` for observations of OBS and actions of ACT (TINY, then ``overrides``)."""
+    return tiny_agent(name, OBS, ACT, **overrides)
+
+
+def window(agent, seed: int = 0) -> dict:
+    """A random time-major training window of ``agent.sequence_length`` records."""
+    S, N = agent.sequence_length, agent.config.model.hidden_size
+    k = jax.random.split(jax.random.key(seed), 6)
+    action = jnp.tanh(jax.random.normal(k[1], (S, B, ACT)))
+    return {"obs": jax.random.normal(k[0], (S, B, OBS)), "action": action,
+            "reward": jax.random.uniform(k[2], (S, B)), "dt": jax.random.randint(k[3], (S, B), 1, 3) * 1.0,
+            "h_prev": 0.5 * jnp.tanh(jax.random.normal(k[4], (S, B, N))),
+            "prev_action": jnp.concatenate([jnp.zeros((1, B, ACT)), action[:-1]])}
