@@ -99,6 +99,8 @@ def _figure(rows: int, cols: int, size: float = 3.0):
 
 def plot_correlation(path: str, true: np.ndarray, predicted: np.ndarray, names: tuple, r: list[float],
                      title: str) -> None:
+    """One panel per state variable: ridge predictions from [z, z²] against the truth (``true``, ``predicted``
+    (N, len(names))), each titled with its correlation ``r[i]``."""
     plt, fig, axes = _figure(1, len(names))
     for i, ax in enumerate(axes[0]):
         ax.scatter(true[:, i], predicted[:, i], s=3, alpha=0.4)
@@ -131,6 +133,7 @@ def plot_umap(path: str, latent: np.ndarray, states: np.ndarray, velocities: np.
 
 def plot_series(path: str, x: list[float], y: list[float], yerr: list[float], xlabel: str, ylabel: str,
                 title: str | None = None) -> None:
+    """One panel: ``y`` ± ``yerr`` against ``x`` (equal lengths), marked at each point."""
     plt, fig, axes = _figure(1, 1, size=4.0)
     axes[0, 0].errorbar(x, y, yerr=yerr, marker="o")
     if title:

@@ -135,6 +135,7 @@ def run_study(name: str, options: GridOptions, *, out: str = DEFAULT_OUT, dry_ru
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """The study command's options (``argv``: the arguments after the program's name; None: sys.argv's)."""
     p = argparse.ArgumentParser(prog="python -m lnnmpc.experiments.run", description=__doc__.split("\n")[0])
     p.add_argument("name", choices=sorted(grid.STUDIES), help="the study")
     p.add_argument("--steps", type=int, default=200_000, help="environment steps per run (default 200000)")

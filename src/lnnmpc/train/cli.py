@@ -150,6 +150,9 @@ def _config_values(args: argparse.Namespace) -> dict:
 
 
 def run_train(args: argparse.Namespace) -> str:
+    """The ``train`` command: a new run (from its options, a recipe's completed by them) or a resumed one (its
+    config.json, the options given overriding it), trained, or with ``--check`` only validated and described;
+    returns the run folder."""
     from lnnmpc.train import runfolder
     from lnnmpc.train.setup import validate
     from lnnmpc.train.trainer import train

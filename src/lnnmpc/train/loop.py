@@ -151,6 +151,9 @@ class TrainingLoop:
 
     # ------------------------------------------------------------------------------------------ init
     def init(self, key: jax.Array) -> TrainState:
+        """One seed's state before training: the agent's parameters and optimiser, an empty replay buffer sized by
+        ``replay_capacity`` for ``num_envs`` environments, the environments reset, the initial acting carries, zero
+        episode returns and, with coloured exploration noise, each environment's first episode of noise."""
         k_agent, k_env, k_loop = jax.random.split(key, 3)
         m, act_dim = self.config.num_envs, self.env.action_size
         record = self.agent.replay_record(jnp.zeros((self.env.observation_size,)), jnp.zeros((act_dim,)),
