@@ -1,4 +1,5 @@
-"""Shared pieces of the LNN-TD-MPC2 tests: tiny agents and a fast-compiling jit (CPU CI time is compile time)."""
+"""Shared pieces of the LNN-TD-MPC2 tests: tiny agents, random training windows and a fast-compiling jit (CPU CI
+time is compile time)."""
 
 from __future__ import annotations
 
