@@ -367,16 +367,16 @@ def test_trained_agent_beats_its_untrained_self(reference, cache):
 
 
 def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
-    """Every evaluation of eval.csv replayed outside the trainer: that step's policy, the trainer's evaluation key for
-    it (split in turn from ``key(seed + 10,000)``), through ``mjx_evaluator`` (another compiled program: it records no
-    latents). The same episodes must give the same returns, so that a standalone evaluation's numbers and a run's
-    curve differ only by the episodes they play (``lnnmpc.evaluate``'s default key is ``key(0)``: other episodes).
-    The evaluator plays the trainer's 2 episodes per seed, not the 4 of the tests above: 4 episodes with the same key
-    start from the same 2 states and 2 more (tests/test_train_loop.py), but another batch width is another program,
-    and on an AVX-512 CPU (2026-12-05) its round-off moved these chaotic episodes' returns by up to 11 at step 1,000
-    (bit for bit equal at width 2); with ``make eval``'s default of 10 episodes the widths match the trainer's."""
-    import jax
-
+    """Every evaluation of eval.csv replayed outside the trainer: that step's policy, the trainer's evaluation key
+    for it (split in turn from ``key(seed + 10,000)``; ``acrobot_starts.trainer_evaluation_key``, which this
+    checks), through ``mjx_evaluator`` (another compiled program: it records no latents). The same episodes must
+    give the same returns, so that a standalone evaluation's numbers and a run's curve differ only by the episodes
+    they play (``lnnmpc.evaluate``'s default key is ``key(0)``: other episodes). The evaluator plays the trainer's 2
+    episodes per seed, not the 4 of the tests above: 4 episodes with the same key start from the same 2 states and 2
+    more (tests/test_train_loop.py), but another batch width is another program, and on an AVX-512 CPU (2026-12-05)
+    its round-off moved these chaotic episodes' returns by up to 11 at step 1,000 (bit for bit equal at width 2);
+    with ``make eval``'s default of 10 episodes the widths match the trainer's."""
+    from lnnmpc.analysis.acrobot_starts import trainer_evaluation_key
     from lnnmpc.train.evaluate import load_policy, mjx_evaluator, policy_at
     from lnnmpc.train.setup import enable_compile_cache
 
@@ -385,9 +385,8 @@ def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
     shape = (policy.config.seeds, policy.config.eval_episodes)  # (2, 2): the reference run's
     evaluate = mjx_evaluator(policy.loop.agent, policy.loop.eval_env, episodes=shape[1], seeds=shape[0])
     rows = _rows(reference / "eval.csv")
-    chain = jax.random.key(policy.config.seed + 10_000)
-    for step in CHECKPOINTS:
-        chain, key = jax.random.split(chain)
+    for index, step in enumerate(CHECKPOINTS):
+        key = trainer_evaluation_key(policy.config.seed, index)
         logged = np.zeros(shape)
         for row in (r for r in rows if int(r["env_step"]) == step):
             logged[int(row["seed"]), int(row["episode"])] = float(row["return"])

@@ -1,0 +1,308 @@
+"""``python -m lnnmpc.analysis.acrobot_starts``: acrobot returns corrected for how hard their episodes' starts were.
+
+    python -m lnnmpc.analysis.acrobot_starts RUN [RUN ...] [--with RUN=CSV ...] [--step STEP]
+        [--population 100000] [--out PREFIX]
+
+An acrobot-swingup episode starts at rest with both joint angles uniform in [-π, π] (dm_control's initial-state
+distribution), and the start's mechanical energy decides much of the return: a policy scores far more from a start
+near the top than from one hanging down. Ten or twenty episodes therefore give a mean that moves with the luck of
+their starts as much as with the policy. This analysis recomputes the initial joint angles of the episodes a run's
+training-time evaluation played (from the trainer's evaluation keys, :func:`trainer_evaluation_key`) and of
+``cli eval`` CSVs of its policy (``--with``; MJX only: they are derived from the CSV's ``eval_seed``), computes
+each start's mechanical energy (:func:`lnnmpc.analysis.acrobot_ceiling.mechanical_energy`, 0 at the shoulder's
+height, 19.6 J upright at rest), and fits each policy's returns on the energy by least squares. The policy's
+**adjusted** mean is the fitted line at the mean energy of ``--population`` starts drawn from the environment's own
+initial-state distribution: the expected return over that distribution, with its standard error from the fit
+(:func:`adjusted_mean`). A run's policy is its final checkpoint's (``--step``: an earlier evaluation's episodes, for
+runs whose policy at that step the CSVs evaluated). Where a policy has episodes of both kinds, the table also gives
+how much more its training evaluation's episodes returned than the others at equal start energy
+(:func:`source_gap`): what the energy leaves out of one set of starts' luck.
+
+Writes ``PREFIX.csv`` (one row per episode: run, source, seed, episode, start angles, energy, return) and
+``PREFIX.png`` (returns against the start's energy, one colour per policy, the fitted lines and the population's
+mean energy), and prints one markdown row per policy and the mean over the policies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from collections.abc import Sequence
+
+import numpy as np
+
+from lnnmpc.train.config import ConfigError
+
+
+def trainer_evaluation_key(seed: int, index: int):
+    """The key of a run's ``index``-th training-time evaluation (0: the first), as the trainer splits it from
+    ``key(seed + 10,000)`` (:meth:`lnnmpc.train.trainer.Trainer._evaluate_now`): split into the run's seeds, it
+    gives each seed's episodes."""
+    import jax
+
+    chain = jax.random.key(seed + 10_000)
+    for _ in range(index + 1):
+        chain, key = jax.random.split(chain)
+    return key
+
+
+def start_qpos(env, key, seeds: int, episodes: int) -> np.ndarray:
+    """Initial joint positions (seeds, episodes, nq) of the episodes that an evaluation with ``key`` plays on
+    ``env`` (the trainer's and ``cli eval``'s on MJX: ``key`` split into ``seeds``, episode i's reset key from
+    :func:`lnnmpc.train.loop.evaluation_keys`, then :meth:`Env.reset`'s split of it)."""
+    import jax
+
+    from lnnmpc.train.loop import evaluation_keys
+
+    def one_seed(seed_key):
+        resets, _ = evaluation_keys(seed_key, episodes)
+        return jax.vmap(lambda k: env.initial_qpos_qvel(jax.random.split(k)[0])[0])(resets)
+
+    return np.asarray(jax.vmap(one_seed)(jax.random.split(key, seeds)), np.float64)
+
+
+def rest_energy(env, qpos: np.ndarray) -> np.ndarray:
+    """Mechanical energy (J) of the acrobot at rest at joint positions ``qpos`` (..., 2), float64."""
+    import jax
+
+    from lnnmpc.analysis.acrobot_ceiling import mechanical_energy, params_from_model
+
+    with jax.enable_x64(True):
+        q = np.asarray(qpos, np.float64)
+        return np.asarray(mechanical_energy(params_from_model(env.mj_model), q, np.zeros_like(q)), np.float64)
+
+
+def population_energy(env, count: int, seed: int = 0) -> np.ndarray:
+    """Rest energies (count,) of ``count`` starts drawn from ``env``'s initial-state distribution."""
+    import jax
+
+    keys = jax.random.split(jax.random.key(seed), count)
+    qpos = jax.vmap(lambda k: env.initial_qpos_qvel(k)[0])(keys)
+    return rest_energy(env, np.asarray(qpos))
+
+
+@dataclasses.dataclass(frozen=True)
+class Adjusted:
+    """A policy's returns fitted on the start's energy: ``return ≈ mean + slope (energy - energy_mean)``."""
+
+    episodes: int
+    mean: float  # the plain mean return
+    energy_mean: float
+    slope: float  # return per J
+    r: float  # correlation of return and energy
+    adjusted: float  # the fitted line at the population's mean energy
+    stderr: float  # its standard error (residual variance with n - 2 degrees of freedom)
+
+
+def adjusted_mean(energy: np.ndarray, returns: np.ndarray, population_mean: float) -> Adjusted:
+    """Least-squares line of ``returns`` (n,) on ``energy`` (n,) evaluated at ``population_mean``; its standard
+    error s·sqrt(1/n + (population_mean - mean energy)² / Sxx), s² = RSS / (n - 2). Needs n >= 3 and energies
+    that differ (ValueError otherwise)."""
+    x, y = np.asarray(energy, np.float64), np.asarray(returns, np.float64)
+    if x.shape != y.shape or x.ndim != 1:
+        raise ValueError(f"energy and returns must be equal 1-d arrays, got shapes {x.shape} and {y.shape}")
+    n = x.size
+    if n < 3:
+        raise ValueError(f"a line with a standard error needs at least 3 episodes, got {n}")
+    dx = x - x.mean()
+    sxx = float(dx @ dx)
+    if sxx == 0:
+        raise ValueError("every episode starts at the same energy: no line to fit")
+    slope = float(dx @ (y - y.mean())) / sxx
+    residual = y - y.mean() - slope * dx
+    s2 = float(residual @ residual) / (n - 2)
+    gap = population_mean - x.mean()
+    dy = y - y.mean()
+    r = float(dx @ dy) / np.sqrt(sxx * float(dy @ dy)) if float(dy @ dy) > 0 else 0.0
+    return Adjusted(episodes=n, mean=float(y.mean()), energy_mean=float(x.mean()), slope=slope, r=r,
+                    adjusted=float(y.mean() + slope * gap), stderr=float(np.sqrt(s2 * (1 / n + gap ** 2 / sxx))))
+
+
+def source_gap(energy: np.ndarray, returns: np.ndarray, trained: np.ndarray) -> float:
+    """How much more the episodes marked ``trained`` (bool (n,)) return than the others at equal start energy: the
+    difference of the two intercepts of a least-squares fit with one slope for both (nan where either group is
+    empty)."""
+    trained = np.asarray(trained, bool)
+    if trained.all() or not trained.any():
+        return float("nan")
+    design = np.stack([trained, ~trained, np.asarray(energy, np.float64)], axis=1).astype(np.float64)
+    coef, *_ = np.linalg.lstsq(design, np.asarray(returns, np.float64), rcond=None)
+    return float(coef[0] - coef[1])
+
+
+def trainer_episodes(run: str, env, step: int | None) -> tuple[int, list[dict]]:
+    """(env step, episode rows) of the run's training-time evaluation at ``step`` (None: its last), each row with
+    the start's angles (the first seed's policy: runs of several seeds give one row set per seed)."""
+    from lnnmpc.train import runfolder
+
+    config = runfolder.saved_config(run)
+    rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
+    steps = sorted({int(r["env_step"]) for r in rows})
+    if not steps:
+        raise ConfigError(f"{run!r}: eval.csv holds no evaluation")
+    chosen = steps[-1] if step is None else step
+    if chosen not in steps:
+        raise ConfigError(f"{run!r} evaluated at {', '.join(map(str, steps))}, not at {chosen}")
+    qpos = start_qpos(env, trainer_evaluation_key(config.seed, steps.index(chosen)), config.seeds,
+                      config.eval_episodes)
+    out = [{"run": run, "source": f"training evaluation {chosen}", "seed": int(r["seed"]),
+            "episode": int(r["episode"]), "qpos": qpos[int(r["seed"]), int(r["episode"])],
+            "return": float(r["return"])} for r in rows if int(r["env_step"]) == chosen]
+    return chosen, out
+
+
+def csv_episodes(run: str, path: str, env, step: int) -> list[dict]:
+    """Episode rows of a ``cli eval`` CSV of ``run``'s policy at ``step`` (MJX; its ``eval_seed`` decides the
+    starts)."""
+    import jax
+
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.paired import read_episode_returns
+
+    evaluation = read_episode_returns(path)
+    rows = runfolder.read_csv(path)
+    if evaluation.episodes_from.get("backend") != "mjx" or evaluation.episodes_from.get("obs") != "clean":
+        raise ConfigError(f"{path!r}: only clean MJX evaluations are supported (dm_control draws its starts "
+                          "otherwise)")
+    if int(rows[0]["env_step"]) != step:
+        raise ConfigError(f"{path!r} evaluated the policy at {rows[0]['env_step']}, the run's evaluation is at {step}")
+    config = runfolder.saved_config(run)
+    seeds, episodes = config.seeds, 1 + max(e for _, e in evaluation.returns)
+    qpos = start_qpos(env, jax.random.key(int(evaluation.episodes_from.get("eval_seed", 0))), seeds, episodes)
+    return [{"run": run, "source": os.path.basename(path), "seed": s, "episode": e, "qpos": qpos[s, e],
+             "return": value} for (s, e), value in sorted(evaluation.returns.items())]
+
+
+def policy_fits(rows: list[dict], population_mean: float) -> list[tuple[str, Adjusted, float, float]]:
+    """(label, fit, training evaluation's plain mean, :func:`source_gap` of the training evaluation's episodes)
+    per policy ((run, seed) of ``rows``, in their order)."""
+    policies: dict[tuple[str, int], list[dict]] = {}
+    for row in rows:
+        policies.setdefault((row["run"], row["seed"]), []).append(row)
+    seeds_of = {}
+    for run, seed in policies:
+        seeds_of.setdefault(run, []).append(seed)
+    out = []
+    for (run, seed), group in policies.items():
+        label = os.path.basename(os.path.normpath(run)) + (f" seed {seed}" if len(seeds_of[run]) > 1 else "")
+        fit = adjusted_mean(np.array([r["energy"] for r in group]), np.array([r["return"] for r in group]),
+                            population_mean)
+        marked = np.array([r["source"].startswith("training evaluation") for r in group])
+        returns = np.array([r["return"] for r in group])
+        gap = source_gap(np.array([r["energy"] for r in group]), returns, marked)
+        out.append((label, fit, float(returns[marked].mean()), gap))
+    return out
+
+
+def markdown(fits: list[tuple[str, Adjusted, float, float]], population: np.ndarray) -> str:
+    """The printed table under a line on the ``population``'s energies: one row per policy, then the mean over the
+    policies (the adjusted mean's standard error: the root of the summed variances over the count)."""
+    lines = [f"population mean start energy {population.mean():.2f} J (sd {population.std():.2f} J over "
+             f"{population.size} starts)", "",
+             "| policy | episodes | training evaluation | all episodes | start energy (J) | return per J | r | "
+             "training evaluation - others at equal energy | adjusted ± s.e. |", "|" + "---|" * 9]
+    for label, fit, trained, gap in fits:
+        lines.append(f"| {label} | {fit.episodes} | {trained:.1f} | {fit.mean:.1f} | {fit.energy_mean:.2f} | "
+                     f"{fit.slope:.1f} | {fit.r:.2f} | {gap:.1f} | {fit.adjusted:.1f} ± {fit.stderr:.1f} |")
+    if len(fits) > 1:
+        k = len(fits)
+        every = [fit for _, fit, _, _ in fits]
+        se = np.sqrt(sum(f.stderr ** 2 for f in every)) / k
+        lines.append(f"| mean of {k} | {sum(f.episodes for f in every)} | {np.mean([f[2] for f in fits]):.1f} | "
+                     f"{np.mean([f.mean for f in every]):.1f} | {np.mean([f.energy_mean for f in every]):.2f} "
+                     f"| | | {np.mean([f[3] for f in fits]):.1f} | {np.mean([f.adjusted for f in every]):.1f} ± "
+                     f"{se:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot(path: str, rows: list[dict], fits: list[tuple[str, Adjusted, float, float]], population_mean: float) -> None:
+    """Returns against the start's energy per policy (training evaluations as dots, ``--with`` CSVs as crosses),
+    each policy's fitted line, the population's mean energy as a dashed line."""
+    from lnnmpc.analysis.report import _figure
+    from lnnmpc.train.png import save_png
+
+    plt, fig, axes = _figure(1, 1, size=5.5)
+    ax = axes[0, 0]
+    labels = [fit[0] for fit in fits]
+    policies = list(dict.fromkeys((r["run"], r["seed"]) for r in rows))
+    for i, ((run, seed), (label, fit, _, _)) in enumerate(zip(policies, fits, strict=True)):
+        colour = f"C{i % 10}"
+        mine = [r for r in rows if (r["run"], r["seed"]) == (run, seed)]
+        for trained, marker in ((True, "o"), (False, "x")):
+            part = [r for r in mine if r["source"].startswith("training evaluation") == trained]
+            if part:
+                ax.scatter([r["energy"] for r in part], [r["return"] for r in part], s=14, marker=marker, color=colour,
+                           alpha=0.7)
+        xs = np.array([min(r["energy"] for r in mine), max(r["energy"] for r in mine)])
+        ax.plot(xs, fit.mean + fit.slope * (xs - fit.energy_mean), color=colour,
+                label=f"{label}: {fit.adjusted:.0f} ± {fit.stderr:.0f}")
+    ax.axvline(population_mean, color="0.4", linestyle="--", linewidth=1, label="population mean energy")
+    ax.set_xlabel("start's mechanical energy at rest (J)")
+    ax.set_ylabel("episode return")
+    ax.set_title(f"{len(labels)} policies: dots training evaluation, crosses other episodes", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    save_png(fig, path, dpi=110)
+    plt.close(fig)
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command's options (module docstring)."""
+    p = argparse.ArgumentParser(prog="python -m lnnmpc.analysis.acrobot_starts", description=__doc__.split("\n")[0])
+    p.add_argument("runs", nargs="+", help="acrobot run folders (config.json and eval.csv)")
+    p.add_argument("--with", dest="extra", nargs="+", default=[], metavar="RUN=CSV",
+                   help="a clean MJX `cli eval` CSV of one of the runs' policies at the same step")
+    p.add_argument("--step", type=int, help="the training evaluation to read (default each run's last)")
+    p.add_argument("--population", type=int, default=100_000, help="starts drawn for the mean energy (default 1e5)")
+    p.add_argument("--out", default="acrobot_starts", help="PREFIX of PREFIX.csv and PREFIX.png")
+    return p.parse_args(argv)
+
+
+def run_analysis(args: argparse.Namespace) -> str:
+    """Reads, fits, writes and returns the printed table (ConfigError for a bad run, CSV or option)."""
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.setup import config_env
+
+    if args.population < 2:
+        raise ConfigError(f"--population must be >= 2, got {args.population}")
+    extra: dict[str, list[str]] = {}
+    for item in args.extra:
+        run, sep, path = item.partition("=")
+        if not sep or run not in args.runs:
+            raise ConfigError(f"--with takes RUN=CSV with RUN one of the runs given, got {item!r}")
+        extra.setdefault(run, []).append(path)
+    rows, env = [], None
+    for run in args.runs:
+        config = runfolder.saved_config(run)
+        if not config.task.startswith("acrobot"):
+            raise ConfigError(f"{run!r} trained {config.task}; this analysis reads acrobot runs only")
+        env = config_env(config, {})
+        step, trained = trainer_episodes(run, env, args.step)
+        rows += trained
+        for path in extra.get(run, []):
+            rows += csv_episodes(run, path, env, step)
+    energies = rest_energy(env, np.stack([r["qpos"] for r in rows]))
+    for row, energy in zip(rows, energies, strict=True):
+        row["energy"] = float(energy)
+    population = population_energy(env, args.population)
+    population_mean = float(population.mean())
+    fits = policy_fits(rows, population_mean)
+    kept = ("run", "source", "seed", "episode", "energy", "return")
+    runfolder.write_csv(f"{args.out}.csv", [*kept[:4], "shoulder", "elbow", *kept[4:]],
+                        [{**{k: r[k] for k in kept}, "shoulder": float(r["qpos"][0]), "elbow": float(r["qpos"][1])}
+                         for r in rows])
+    plot(f"{args.out}.png", rows, fits, population_mean)
+    return markdown(fits, population)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from lnnmpc.train.config import command_status
+
+    args = parse_args(argv)
+    return command_status(lambda: run_analysis(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

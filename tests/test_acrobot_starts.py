@@ -1,0 +1,127 @@
+"""``lnnmpc.analysis.acrobot_starts``: evaluation starts as the environment resets them, their energy against MuJoCo's,
+the start-adjusted mean against an independent float64 least-squares computation, and the command on committed GPU
+runs (the trainer's logged returns must follow the recomputed starts' energy)."""
+
+import csv
+import os
+
+import jax
+import mujoco
+import numpy as np
+import pytest
+
+from lnnmpc.analysis import acrobot_starts as starts
+
+RESULTS = os.path.join(os.path.dirname(__file__), "..", "experiments", "results",
+                       "cfc-acrobot-recipe-ar4-ar8-h100-200k")
+RUNS = [os.path.join(RESULTS, f"acrobot-recipe-ar4-seed{seed}") for seed in (1, 2, 3)]
+
+
+@pytest.fixture(scope="module")
+def env():
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.setup import config_env
+
+    return config_env(runfolder.saved_config(RUNS[0]), {})
+
+
+def test_start_qpos_are_the_joint_positions_env_reset_puts_the_episodes_in(env):
+    from lnnmpc.train.loop import evaluation_keys
+
+    key = jax.random.key(7)
+    qpos = starts.start_qpos(env, key, seeds=2, episodes=3)
+    assert qpos.shape == (2, 3, 2)
+    for seed, seed_key in enumerate(jax.random.split(key, 2)):
+        resets, _ = evaluation_keys(seed_key, 3)
+        reset = jax.vmap(env.reset)(resets)
+        np.testing.assert_array_equal(qpos[seed], np.asarray(reset.physics.qpos))
+    assert np.all(np.abs(qpos) <= np.pi) and len(np.unique(qpos)) == qpos.size  # uniform angles, all different
+
+
+def test_rest_energy_is_mujocos_mechanical_energy_at_zero_velocity(env):
+    """Against MuJoCo's kinematics of the environment's model: g Σ m_b (height of body b's centre of mass above
+    the shoulder)."""
+    model = env.mj_model
+    data = mujoco.MjData(model)
+    qpos = np.random.default_rng(0).uniform(-np.pi, np.pi, (5, 2))
+    for q, energy in zip(qpos, starts.rest_energy(env, qpos), strict=True):
+        data.qpos[:], data.qvel[:] = q, 0.0
+        mujoco.mj_kinematics(model, data)
+        shoulder = data.xanchor[0, 2]  # the shoulder hinge's height
+        reference = -model.opt.gravity[2] * model.body_mass @ (data.xipos[:, 2] - shoulder)
+        assert energy == pytest.approx(reference, abs=1e-9)
+    upright, hanging = starts.rest_energy(env, np.array([[0.0, 0.0], [np.pi, 0.0]]))
+    assert upright == pytest.approx(-hanging) and 19 < upright < 20
+    population = starts.population_energy(env, 4000)
+    assert population.max() <= upright and abs(population.mean()) < 0.6  # uniform angles: mean ~0 (sd ~11)
+
+
+def test_adjusted_mean_against_least_squares_in_float64():
+    rng = np.random.default_rng(1)
+    energy = rng.uniform(-19, 19, 25)
+    returns = 600 + 12 * energy + rng.normal(0, 50, 25)
+    fit = starts.adjusted_mean(energy, returns, population_mean=1.5)
+    design = np.stack([np.ones(25), energy], axis=1)
+    coef, rss, *_ = np.linalg.lstsq(design, returns, rcond=None)
+    s2 = rss[0] / (25 - 2)
+    at = np.array([1.0, 1.5])
+    assert fit.slope == pytest.approx(coef[1], rel=1e-12)
+    assert fit.adjusted == pytest.approx(at @ coef, rel=1e-12)
+    assert fit.stderr == pytest.approx(np.sqrt(s2 * at @ np.linalg.inv(design.T @ design) @ at), rel=1e-10)
+    assert fit.r == pytest.approx(np.corrcoef(energy, returns)[0, 1], rel=1e-12)
+    assert (fit.episodes, fit.mean, fit.energy_mean) == (25, pytest.approx(returns.mean()),
+                                                         pytest.approx(energy.mean()))
+    exact = starts.adjusted_mean(np.array([-2.0, 0.0, 4.0]), np.array([100.0, 120.0, 160.0]), 10.0)
+    assert (exact.adjusted, exact.stderr, exact.r) == (pytest.approx(220.0), pytest.approx(0.0), pytest.approx(1.0))
+    marked = np.arange(25) < 10
+    shifted = np.where(marked, 30.0, 0.0) + 600 + 12 * energy
+    assert starts.source_gap(energy, shifted, marked) == pytest.approx(30.0)
+    noisy = shifted + rng.normal(0, 50, 25)
+    design = np.stack([marked, ~marked, energy], axis=1).astype(float)
+    coef = np.linalg.solve(design.T @ design, design.T @ noisy)  # the normal equations
+    assert starts.source_gap(energy, noisy, marked) == pytest.approx(coef[0] - coef[1], rel=1e-10)
+    assert np.isnan(starts.source_gap(energy, noisy, np.ones(25, bool)))
+    with pytest.raises(ValueError, match="at least 3 episodes, got 2"):
+        starts.adjusted_mean(np.zeros(2), np.zeros(2), 0.0)
+    with pytest.raises(ValueError, match="same energy"):
+        starts.adjusted_mean(np.ones(4), np.arange(4.0), 0.0)
+    with pytest.raises(ValueError, match=r"equal 1-d arrays, got shapes \(3,\) and \(4,\)"):
+        starts.adjusted_mean(np.zeros(3), np.zeros(4), 0.0)
+
+
+def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp_path, capsys):
+    """The three committed runs' final training evaluations (GPU) and their policies' 20-episode MJX CSVs: every
+    policy's logged returns correlate with the recomputed starts' energy (r > 0.8; starts from wrong keys would
+    not), the CSV holds each episode once, and bad input is refused with exit status 2."""
+    extra = [f"{run}={RESULTS}/analysis/mjx-20ep-ar4-seed{seed}-200128.csv" for seed, run in enumerate(RUNS, 1)]
+    out = str(tmp_path / "ar4")
+    assert starts.main([*RUNS, "--with", *extra, "--population", "2000", "--out", out]) == 0
+    table = capsys.readouterr().out
+    with open(f"{out}.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 90 and len({(r["run"], r["source"], r["episode"]) for r in rows}) == 90
+    assert os.path.getsize(f"{out}.png") > 10_000
+    for run in RUNS:
+        mine = [r for r in rows if r["run"] == run]
+        energy, returns = (np.array([float(r[c]) for r in mine]) for c in ("energy", "return"))
+        assert np.corrcoef(energy, returns)[0, 1] > 0.8
+        trained = [float(r["return"]) for r in mine if r["source"] == "training evaluation 200128"]
+        logged = [float(r["return"]) for r in csv.DictReader(open(os.path.join(run, "eval.csv")))
+                  if r["env_step"] == "200128"]
+        assert trained == logged
+    assert table.count("| acrobot-recipe-ar4-seed") == 3 and "| mean of 3 | 90 |" in table
+    assert "nan" not in table  # every policy has episodes of both kinds: a gap each
+
+    def refused(*args):
+        assert starts.main([*args, "--out", out]) == 2
+        return capsys.readouterr().err
+
+    assert f"--with takes RUN=CSV with RUN one of the runs given, got '{extra[1]}'" in refused(RUNS[0], "--with",
+                                                                                              extra[1])
+    assert "not at 100" in refused(RUNS[0], "--step", "100")
+    assert "--population must be >= 2, got 1" in refused(RUNS[0], "--population", "1")
+    dm_control = f"{RESULTS}/analysis/dm_control-ar4-seed1-200128.csv"
+    assert "only clean MJX evaluations" in refused(RUNS[0], "--with", f"{RUNS[0]}={dm_control}")
+    walker = os.path.join(os.path.dirname(__file__), "..", "experiments", "results",
+                          "cfc-walker-simnorm-latent512-200k-h200", "walker-simnorm-latent512-seed1")
+    assert "trained walker-run; this analysis reads acrobot runs only" in refused(walker)
