@@ -38,6 +38,17 @@ def test_start_qpos_are_the_joint_positions_env_reset_puts_the_episodes_in(env):
     assert np.all(np.abs(qpos) <= np.pi) and len(np.unique(qpos)) == qpos.size  # uniform angles, all different
 
 
+def test_dm_control_starts_are_those_of_dm_controls_seeded_tasks(env):
+    """``cli eval --backend dm_control --seed 3``'s episode e starts where dm_control's task seeded with 3 + e puts
+    the chain (``acrobot_ceiling.dm_control_envs``, another path into dm_control)."""
+    from lnnmpc.analysis import acrobot_ceiling as ac
+
+    qpos = starts.dm_control_start_qpos(env, 3, 4)
+    reference = [np.array(sim.physics.data.qpos) for sim in ac.dm_control_envs([3, 4, 5, 6])]
+    np.testing.assert_array_equal(qpos, np.stack(reference))
+    assert len(np.unique(qpos)) == qpos.size
+
+
 def test_rest_energy_is_mujocos_mechanical_energy_at_zero_velocity(env):
     """Against MuJoCo's kinematics of the environment's model: g Σ m_b (height of body b's centre of mass above
     the shoulder)."""
@@ -110,7 +121,7 @@ def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp
                   if r["env_step"] == "200128"]
         assert trained == logged
     assert table.count("| acrobot-recipe-ar4-seed") == 3 and "| mean of 3 | 90 |" in table
-    assert "nan" not in table  # every policy has episodes of both kinds: a gap each
+    assert "nan" not in table and " - |" not in table  # every policy has episodes of both kinds: a gap each
 
     def refused(*args):
         assert starts.main([*args, "--out", out]) == 2
@@ -120,8 +131,17 @@ def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp
                                                                                               extra[1])
     assert "not at 100" in refused(RUNS[0], "--step", "100")
     assert "--population must be >= 2, got 1" in refused(RUNS[0], "--population", "1")
-    dm_control = f"{RESULTS}/analysis/dm_control-ar4-seed1-200128.csv"
-    assert "only clean MJX evaluations" in refused(RUNS[0], "--with", f"{RUNS[0]}={dm_control}")
+    plan5 = f"{RESULTS}/analysis/dm_control-ar4-seed3-200128-plan5.csv"  # a planner override, still clean
+    assert starts.main([RUNS[2], "--with", f"{RUNS[2]}={plan5}", "--without-training", "--population", "2000",
+                        "--out", out]) == 0
+    assert "| acrobot-recipe-ar4-seed3 | 10 | - |" in capsys.readouterr().out  # no training evaluation fitted
+    with open(f"{out}.csv", newline="") as f:
+        assert {r["source"] for r in csv.DictReader(f)} == {os.path.basename(plan5)}
+    noisy = tmp_path / "noisy.csv"
+    noisy.write_text(open(extra[0].split("=", 1)[1]).read().replace(",clean,", ",noise0.1,"))
+    assert "only clean evaluations are supported (backend mjx or dm_control, obs clean), got backend 'mjx', obs " \
+        "'noise0.1'" in refused(RUNS[0], "--with", f"{RUNS[0]}={noisy}")
+    assert "--without-training leaves" in refused(RUNS[0], RUNS[1], "--with", extra[0], "--without-training")
     walker = os.path.join(os.path.dirname(__file__), "..", "experiments", "results",
                           "cfc-walker-simnorm-latent512-200k-h200", "walker-simnorm-latent512-seed1")
     assert "trained walker-run; this analysis reads acrobot runs only" in refused(walker)

@@ -1,22 +1,23 @@
 """``python -m lnnmpc.analysis.acrobot_starts``: acrobot returns corrected for how hard their episodes' starts were.
 
-    python -m lnnmpc.analysis.acrobot_starts RUN [RUN ...] [--with RUN=CSV ...] [--step STEP]
-        [--population 100000] [--out PREFIX]
+    python -m lnnmpc.analysis.acrobot_starts RUN [RUN ...] [--with RUN=CSV ...] [--without-training]
+        [--step STEP] [--population 100000] [--out PREFIX]
 
 An acrobot-swingup episode starts at rest with both joint angles uniform in [-π, π] (dm_control's initial-state
 distribution), and the start's mechanical energy decides much of the return: a policy scores far more from a start
 near the top than from one hanging down. Ten or twenty episodes therefore give a mean that moves with the luck of
 their starts as much as with the policy. This analysis recomputes the initial joint angles of the episodes a run's
-training-time evaluation played (from the trainer's evaluation keys, :func:`trainer_evaluation_key`) and of
-``cli eval`` CSVs of its policy (``--with``; MJX only: they are derived from the CSV's ``eval_seed``), computes
-each start's mechanical energy (:func:`lnnmpc.analysis.acrobot_ceiling.mechanical_energy`, 0 at the shoulder's
-height, 19.6 J upright at rest), and fits each policy's returns on the energy by least squares. The policy's
-**adjusted** mean is the fitted line at the mean energy of ``--population`` starts drawn from the environment's own
-initial-state distribution: the expected return over that distribution, with its standard error from the fit
-(:func:`adjusted_mean`). A run's policy is its final checkpoint's (``--step``: an earlier evaluation's episodes, for
-runs whose policy at that step the CSVs evaluated). Where a policy has episodes of both kinds, the table also gives
-how much more its training evaluation's episodes returned than the others at equal start energy
-(:func:`source_gap`): what the energy leaves out of one set of starts' luck.
+training-time evaluation played (from the trainer's evaluation keys, :func:`trainer_evaluation_key`) and of clean
+``cli eval`` CSVs of its policy (``--with``, MJX or dm_control: derived from the CSV's ``eval_seed``; with
+``--without-training`` only these are fitted), computes each start's mechanical energy
+(:func:`lnnmpc.analysis.acrobot_ceiling.mechanical_energy`, 0 at the shoulder's height, 19.6 J upright at rest), and
+fits each policy's returns on the energy by least squares. The policy's **adjusted** mean is the fitted line at the
+mean energy of ``--population`` starts drawn from the environment's own initial-state distribution: the expected
+return over that distribution, with its standard error from the fit (:func:`adjusted_mean`). A run's policy is its
+final checkpoint's (``--step``: an earlier evaluation's episodes, for runs whose policy at that step the CSVs
+evaluated). Where a policy has episodes of both kinds, the table also gives how much more its training evaluation's
+episodes returned than the others at equal start energy (:func:`source_gap`): what the energy leaves out of one set
+of starts' luck.
 
 Writes ``PREFIX.csv`` (one row per episode: run, source, seed, episode, start angles, energy, return) and
 ``PREFIX.png`` (returns against the start's energy, one colour per policy, the fitted lines and the population's
@@ -153,9 +154,23 @@ def trainer_episodes(run: str, env, step: int | None) -> tuple[int, list[dict]]:
     return chosen, out
 
 
+def dm_control_start_qpos(env, seed: int, episodes: int) -> np.ndarray:
+    """Initial joint positions (episodes, nq) of the episodes ``cli eval --backend dm_control --seed seed`` plays
+    (episode e, for every seed of the policy: dm_control's task seeded with ``seed + e``,
+    :func:`lnnmpc.train.dm_backend.run_episodes`)."""
+    from lnnmpc.train.dm_backend import load_dm_control
+
+    starts = []
+    for e in range(episodes):
+        sim = load_dm_control(env, seed + e)
+        sim.reset()
+        starts.append(np.array(sim.physics.data.qpos, np.float64))
+    return np.stack(starts)
+
+
 def csv_episodes(run: str, path: str, env, step: int) -> list[dict]:
-    """Episode rows of a ``cli eval`` CSV of ``run``'s policy at ``step`` (MJX; its ``eval_seed`` decides the
-    starts)."""
+    """Episode rows of a clean ``cli eval`` CSV of ``run``'s policy at ``step`` (MJX or dm_control; its
+    ``eval_seed`` decides the starts)."""
     import jax
 
     from lnnmpc.train import runfolder
@@ -163,14 +178,19 @@ def csv_episodes(run: str, path: str, env, step: int) -> list[dict]:
 
     evaluation = read_episode_returns(path)
     rows = runfolder.read_csv(path)
-    if evaluation.episodes_from.get("backend") != "mjx" or evaluation.episodes_from.get("obs") != "clean":
-        raise ConfigError(f"{path!r}: only clean MJX evaluations are supported (dm_control draws its starts "
-                          "otherwise)")
+    backend = evaluation.episodes_from.get("backend")
+    if backend not in ("mjx", "dm_control") or evaluation.episodes_from.get("obs") != "clean":
+        raise ConfigError(f"{path!r}: only clean evaluations are supported (backend mjx or dm_control, obs clean), "
+                          f"got backend {backend!r}, obs {evaluation.episodes_from.get('obs')!r}")
     if int(rows[0]["env_step"]) != step:
         raise ConfigError(f"{path!r} evaluated the policy at {rows[0]['env_step']}, the run's evaluation is at {step}")
     config = runfolder.saved_config(run)
     seeds, episodes = config.seeds, 1 + max(e for _, e in evaluation.returns)
-    qpos = start_qpos(env, jax.random.key(int(evaluation.episodes_from.get("eval_seed", 0))), seeds, episodes)
+    seed = int(evaluation.episodes_from.get("eval_seed", 0))
+    if backend == "mjx":
+        qpos = start_qpos(env, jax.random.key(seed), seeds, episodes)
+    else:
+        qpos = np.broadcast_to(dm_control_start_qpos(env, seed, episodes), (seeds, episodes, env.mj_model.nq))
     return [{"run": run, "source": os.path.basename(path), "seed": s, "episode": e, "qpos": qpos[s, e],
              "return": value} for (s, e), value in sorted(evaluation.returns.items())]
 
@@ -192,7 +212,7 @@ def policy_fits(rows: list[dict], population_mean: float) -> list[tuple[str, Adj
         marked = np.array([r["source"].startswith("training evaluation") for r in group])
         returns = np.array([r["return"] for r in group])
         gap = source_gap(np.array([r["energy"] for r in group]), returns, marked)
-        out.append((label, fit, float(returns[marked].mean()), gap))
+        out.append((label, fit, float(returns[marked].mean()) if marked.any() else float("nan"), gap))
     return out
 
 
@@ -203,16 +223,19 @@ def markdown(fits: list[tuple[str, Adjusted, float, float]], population: np.ndar
              f"{population.size} starts)", "",
              "| policy | episodes | training evaluation | all episodes | start energy (J) | return per J | r | "
              "training evaluation - others at equal energy | adjusted ± s.e. |", "|" + "---|" * 9]
+    def cell(value: float) -> str:  # "-" where a policy has no such episodes
+        return "-" if np.isnan(value) else f"{value:.1f}"
+
     for label, fit, trained, gap in fits:
-        lines.append(f"| {label} | {fit.episodes} | {trained:.1f} | {fit.mean:.1f} | {fit.energy_mean:.2f} | "
-                     f"{fit.slope:.1f} | {fit.r:.2f} | {gap:.1f} | {fit.adjusted:.1f} ± {fit.stderr:.1f} |")
+        lines.append(f"| {label} | {fit.episodes} | {cell(trained)} | {fit.mean:.1f} | {fit.energy_mean:.2f} | "
+                     f"{fit.slope:.1f} | {fit.r:.2f} | {cell(gap)} | {fit.adjusted:.1f} ± {fit.stderr:.1f} |")
     if len(fits) > 1:
         k = len(fits)
         every = [fit for _, fit, _, _ in fits]
         se = np.sqrt(sum(f.stderr ** 2 for f in every)) / k
-        lines.append(f"| mean of {k} | {sum(f.episodes for f in every)} | {np.mean([f[2] for f in fits]):.1f} | "
+        lines.append(f"| mean of {k} | {sum(f.episodes for f in every)} | {cell(np.mean([f[2] for f in fits]))} | "
                      f"{np.mean([f.mean for f in every]):.1f} | {np.mean([f.energy_mean for f in every]):.2f} "
-                     f"| | | {np.mean([f[3] for f in fits]):.1f} | {np.mean([f.adjusted for f in every]):.1f} ± "
+                     f"| | | {cell(np.mean([f[3] for f in fits]))} | {np.mean([f.adjusted for f in every]):.1f} ± "
                      f"{se:.1f} |")
     return "\n".join(lines) + "\n"
 
@@ -255,6 +278,8 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--with", dest="extra", nargs="+", default=[], metavar="RUN=CSV",
                    help="a clean MJX `cli eval` CSV of one of the runs' policies at the same step")
     p.add_argument("--step", type=int, help="the training evaluation to read (default each run's last)")
+    p.add_argument("--without-training", action="store_true",
+                   help="fit the --with CSVs' episodes alone (every run needs one), not the training evaluation's")
     p.add_argument("--population", type=int, default=100_000, help="starts drawn for the mean energy (default 1e5)")
     p.add_argument("--out", default="acrobot_starts", help="PREFIX of PREFIX.csv and PREFIX.png")
     return p.parse_args(argv)
@@ -273,6 +298,9 @@ def run_analysis(args: argparse.Namespace) -> str:
         if not sep or run not in args.runs:
             raise ConfigError(f"--with takes RUN=CSV with RUN one of the runs given, got {item!r}")
         extra.setdefault(run, []).append(path)
+    if args.without_training and set(args.runs) - set(extra):
+        raise ConfigError(f"--without-training leaves {sorted(set(args.runs) - set(extra))[0]!r} no episodes: give "
+                          "it a CSV with --with")
     rows, env = [], None
     for run in args.runs:
         config = runfolder.saved_config(run)
@@ -280,7 +308,7 @@ def run_analysis(args: argparse.Namespace) -> str:
             raise ConfigError(f"{run!r} trained {config.task}; this analysis reads acrobot runs only")
         env = config_env(config, {})
         step, trained = trainer_episodes(run, env, args.step)
-        rows += trained
+        rows += [] if args.without_training else trained
         for path in extra.get(run, []):
             rows += csv_episodes(run, path, env, step)
     energies = rest_energy(env, np.stack([r["qpos"] for r in rows]))
