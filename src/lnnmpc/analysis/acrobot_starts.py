@@ -39,7 +39,7 @@ from lnnmpc.train.config import ConfigError
 
 def trainer_evaluation_key(seed: int, index: int):
     """The key of a run's ``index``-th training-time evaluation (0: the first), as the trainer splits it from
-    ``key(seed + 10,000)`` (:meth:`lnnmpc.train.trainer.Trainer._evaluate_now`): split into the run's seeds, it
+    ``key(seed + 10,000)`` (``_evaluate_now`` in :mod:`lnnmpc.train.trainer`): split into the run's seeds, it
     gives each seed's episodes."""
     import jax
 
@@ -107,16 +107,15 @@ def adjusted_mean(energy: np.ndarray, returns: np.ndarray, population_mean: floa
     n = x.size
     if n < 3:
         raise ValueError(f"a line with a standard error needs at least 3 episodes, got {n}")
-    dx = x - x.mean()
-    sxx = float(dx @ dx)
+    dx, dy = x - x.mean(), y - y.mean()
+    sxx, syy = float(dx @ dx), float(dy @ dy)
     if sxx == 0:
         raise ValueError("every episode starts at the same energy: no line to fit")
-    slope = float(dx @ (y - y.mean())) / sxx
-    residual = y - y.mean() - slope * dx
+    slope = float(dx @ dy) / sxx
+    residual = dy - slope * dx
     s2 = float(residual @ residual) / (n - 2)
     gap = population_mean - x.mean()
-    dy = y - y.mean()
-    r = float(dx @ dy) / np.sqrt(sxx * float(dy @ dy)) if float(dy @ dy) > 0 else 0.0
+    r = float(dx @ dy) / np.sqrt(sxx * syy) if syy > 0 else 0.0
     return Adjusted(episodes=n, mean=float(y.mean()), energy_mean=float(x.mean()), slope=slope, r=r,
                     adjusted=float(y.mean() + slope * gap), stderr=float(np.sqrt(s2 * (1 / n + gap ** 2 / sxx))))
 
@@ -134,8 +133,8 @@ def source_gap(energy: np.ndarray, returns: np.ndarray, trained: np.ndarray) -> 
 
 
 def trainer_episodes(run: str, env, step: int | None) -> tuple[int, list[dict]]:
-    """(env step, episode rows) of the run's training-time evaluation at ``step`` (None: its last), each row with
-    the start's angles (the first seed's policy: runs of several seeds give one row set per seed)."""
+    """(env step, episode rows) of the run's training-time evaluation at ``step`` (None: its last): every seed's
+    episodes, each row with its seed and the start's angles (each seed's policy is fitted apart)."""
     from lnnmpc.train import runfolder
 
     config = runfolder.saved_config(run)
