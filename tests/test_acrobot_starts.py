@@ -142,6 +142,12 @@ def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp
     assert "only clean evaluations are supported (backend mjx or dm_control, obs clean), got backend 'mjx', obs " \
         "'noise0.1'" in refused(RUNS[0], "--with", f"{RUNS[0]}={noisy}")
     assert "--without-training leaves" in refused(RUNS[0], RUNS[1], "--with", extra[0], "--without-training")
+    twice = tmp_path / "twice"
+    twice.mkdir()
+    (twice / "config.json").write_text(open(os.path.join(RUNS[0], "config.json")).read())
+    logged = open(os.path.join(RUNS[0], "eval.csv")).read().splitlines()
+    (twice / "eval.csv").write_text("\n".join([*logged, logged[-1]]) + "\n")  # the last episode logged again
+    assert "holds an episode of the evaluation at 200128 twice" in refused(str(twice))
     walker = os.path.join(os.path.dirname(__file__), "..", "experiments", "results",
                           "cfc-walker-simnorm-latent512-200k-h200", "walker-simnorm-latent512-seed1")
     assert "trained walker-run; this analysis reads acrobot runs only" in refused(walker)

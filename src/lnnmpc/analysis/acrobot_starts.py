@@ -150,6 +150,8 @@ def trainer_episodes(run: str, env, step: int | None) -> tuple[int, list[dict]]:
     out = [{"run": run, "source": f"training evaluation {chosen}", "seed": int(r["seed"]),
             "episode": int(r["episode"]), "qpos": qpos[int(r["seed"]), int(r["episode"])],
             "return": float(r["return"])} for r in rows if int(r["env_step"]) == chosen]
+    if len({(r["seed"], r["episode"]) for r in out}) != len(out):
+        raise ConfigError(f"{run!r}: eval.csv holds an episode of the evaluation at {chosen} twice")
     return chosen, out
 
 
