@@ -3,6 +3,7 @@ the start-adjusted mean against an independent float64 least-squares computation
 runs (the trainer's logged returns must follow the recomputed starts' energy)."""
 
 import csv
+import json
 import os
 
 import jax
@@ -65,6 +66,30 @@ def test_rest_energy_is_mujocos_mechanical_energy_at_zero_velocity(env):
     assert upright == pytest.approx(-hanging) and 19 < upright < 20
     population = starts.population_energy(env, 4000)
     assert population.max() <= upright and abs(population.mean()) < 0.6  # uniform angles: mean ~0 (sd ~11)
+
+
+def test_provenance_decides_whether_a_runs_starts_can_be_recomputed():
+    """An entry's commit where git knows it; otherwise (a shallow clone, a commit of another repository) its start
+    time against the change's."""
+    unknown = {"commit": "f" * 40}
+    assert starts.plays_current_starts({"git": unknown, "time": "2026-12-01T00:00:00Z"})
+    assert not starts.plays_current_starts({"git": unknown, "time": "2026-11-28T00:00:00Z"})
+    assert not starts.plays_current_starts({"time": "2026-11-29T17:23:28Z"})
+    assert starts.plays_current_starts({"time": "2026-11-29T17:23:29Z"})
+    for run in RUNS:
+        starts.check_current_starts(run)  # the committed GPU runs (code 0c4e564, 2026-12-05)
+
+
+def test_policies_are_labelled_apart_when_their_folders_share_a_name():
+    rows = [{"run": f"study/{agent}/clean-seeds2", "seed": seed, "source": "training evaluation 10",
+             "energy": float(e), "return": 10.0 * e + seed} for agent in ("tdmpc2", "cfc-zp-det") for seed in (0, 1)
+            for e in range(4)]
+    fits = starts.policy_fits(rows, 0.0)
+    assert [label for label, *_ in fits] == [f"{agent}/clean-seeds2 seed {seed}" for agent in ("tdmpc2", "cfc-zp-det")
+                                            for seed in (0, 1)]
+    assert [fit.adjusted for _, fit, *_ in fits] == pytest.approx([0.0, 1.0, 0.0, 1.0])
+    alone = starts.policy_fits([{**r, "run": "study/tdmpc2/clean"} for r in rows[:4]], 0.0)
+    assert alone[0][0] == "clean"  # one seed, a unique name: the folder's name alone
 
 
 def test_adjusted_mean_against_least_squares_in_float64():
@@ -142,6 +167,18 @@ def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp
     assert "only clean evaluations are supported (backend mjx or dm_control, obs clean), got backend 'mjx', obs " \
         "'noise0.1'" in refused(RUNS[0], "--with", f"{RUNS[0]}={noisy}")
     assert "--without-training leaves" in refused(RUNS[0], RUNS[1], "--with", extra[0], "--without-training")
+    unseeded = tmp_path / "unseeded.csv"
+    unseeded.write_text("".join(line.rsplit(",", 1)[0] + "\n" for line in open(extra[0].split("=", 1)[1])))
+    assert "records no eval_seed" in refused(RUNS[0], "--with", f"{RUNS[0]}={unseeded}")
+    old = tmp_path / "old"
+    old.mkdir()
+    saved = json.load(open(os.path.join(RUNS[0], "config.json")))
+    (old / "eval.csv").write_text(open(os.path.join(RUNS[0], "eval.csv")).read())
+    (old / "config.json").write_text(json.dumps({k: v for k, v in saved.items() if k != "provenance"}))
+    assert "records no provenance: its evaluations drew their starts before 45dda0c" in refused(str(old))
+    stale = {**saved["provenance"][0], "git": {"commit": "f" * 40}, "time": "2026-11-28T10:00:00Z"}
+    (old / "config.json").write_text(json.dumps({**saved, "provenance": [*saved["provenance"], stale]}))
+    assert "started at 2026-11-28T10:00:00Z" in refused(str(old))  # a resume with older code
     twice = tmp_path / "twice"
     twice.mkdir()
     (twice / "config.json").write_text(open(os.path.join(RUNS[0], "config.json")).read())

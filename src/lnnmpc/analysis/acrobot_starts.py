@@ -17,7 +17,8 @@ return over that distribution, with its standard error from the fit (:func:`adju
 final checkpoint's (``--step``: an earlier evaluation's episodes, for runs whose policy at that step the CSVs
 evaluated). Where a policy has episodes of both kinds, the table also gives how much more its training evaluation's
 episodes returned than the others at equal start energy (:func:`source_gap`): what the energy leaves out of one set
-of starts' luck.
+of starts' luck. Runs started (or resumed) with code older than KEYS_SINCE_COMMIT, whose evaluations drew their starts
+otherwise, and CSVs without an ``eval_seed`` column are refused (:func:`check_current_starts`).
 
 Writes ``PREFIX.csv`` (one row per episode: run, source, seed, episode, start angles, energy, return) and
 ``PREFIX.png`` (returns against the start's energy, one colour per policy, the fitted lines and the population's
@@ -35,6 +36,11 @@ from collections.abc import Sequence
 import numpy as np
 
 from lnnmpc.train.config import ConfigError
+
+# Since this commit (2026-11-29) the trainer's and `cli eval`'s MJX episodes take their keys as start_qpos derives
+# them (episode i's from fold_in(key, i)); runs started before it played other starts. A run's provenance names its
+# code's commit (time where git does not know the commit: a shallow clone).
+KEYS_SINCE_COMMIT, KEYS_SINCE_TIME = "45dda0c", "2026-11-29T17:23:29Z"
 
 
 def trainer_evaluation_key(seed: int, index: int):
@@ -132,11 +138,41 @@ def source_gap(energy: np.ndarray, returns: np.ndarray, trained: np.ndarray) -> 
     return float(coef[0] - coef[1])
 
 
+def plays_current_starts(entry: dict) -> bool:
+    """Whether a provenance entry (:mod:`lnnmpc.train.provenance`) ran code whose evaluations draw their starts as
+    :func:`start_qpos` does: its commit descends from KEYS_SINCE_COMMIT (or, where git cannot tell, it started after
+    KEYS_SINCE_TIME)."""
+    import subprocess
+
+    commit = (entry.get("git") or {}).get("commit")
+    if commit:
+        root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..")
+        done = subprocess.run(["git", "-C", root, "merge-base", "--is-ancestor", KEYS_SINCE_COMMIT, commit],
+                              capture_output=True)
+        if done.returncode in (0, 1):  # 128: a commit git does not know
+            return done.returncode == 0
+    return str(entry.get("time", "")) >= KEYS_SINCE_TIME
+
+
+def check_current_starts(run: str) -> None:
+    """ConfigError where ``run`` has no provenance or a start or resume of it ran code older than KEYS_SINCE_COMMIT
+    (its evaluations' starts cannot be recomputed)."""
+    from lnnmpc.train import runfolder
+
+    entries = runfolder.read_provenance(run)
+    old = [e for e in entries if not plays_current_starts(e)]
+    if not entries or old:
+        when = f"started at {old[0].get('time', '?')}" if old else "records no provenance"
+        raise ConfigError(f"{run!r} {when}: its evaluations drew their starts before {KEYS_SINCE_COMMIT} "
+                          f"({KEYS_SINCE_TIME[:10]}), so they cannot be recomputed")
+
+
 def trainer_episodes(run: str, env, step: int | None) -> tuple[int, list[dict]]:
     """(env step, episode rows) of the run's training-time evaluation at ``step`` (None: its last): every seed's
     episodes, each row with its seed and the start's angles (each seed's policy is fitted apart)."""
     from lnnmpc.train import runfolder
 
+    check_current_starts(run)
     config = runfolder.saved_config(run)
     rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
     steps = sorted({int(r["env_step"]) for r in rows})
@@ -183,11 +219,14 @@ def csv_episodes(run: str, path: str, env, step: int) -> list[dict]:
     if backend not in ("mjx", "dm_control") or evaluation.episodes_from.get("obs") != "clean":
         raise ConfigError(f"{path!r}: only clean evaluations are supported (backend mjx or dm_control, obs clean), "
                           f"got backend {backend!r}, obs {evaluation.episodes_from.get('obs')!r}")
+    if "eval_seed" not in evaluation.episodes_from:
+        raise ConfigError(f"{path!r} records no eval_seed (written before `cli eval` recorded it, 2026-12-04): "
+                          "its starts cannot be recomputed")
     if int(rows[0]["env_step"]) != step:
         raise ConfigError(f"{path!r} evaluated the policy at {rows[0]['env_step']}, the run's evaluation is at {step}")
     config = runfolder.saved_config(run)
     seeds, episodes = config.seeds, 1 + max(e for _, e in evaluation.returns)
-    seed = int(evaluation.episodes_from.get("eval_seed", 0))
+    seed = int(evaluation.episodes_from["eval_seed"])
     if backend == "mjx":
         qpos = start_qpos(env, jax.random.key(seed), seeds, episodes)
     else:
@@ -202,12 +241,16 @@ def policy_fits(rows: list[dict], population_mean: float) -> list[tuple[str, Adj
     policies: dict[tuple[str, int], list[dict]] = {}
     for row in rows:
         policies.setdefault((row["run"], row["seed"]), []).append(row)
-    seeds_of = {}
+    seeds_of: dict[str, list[int]] = {}
     for run, seed in policies:
         seeds_of.setdefault(run, []).append(seed)
+    base = {run: os.path.basename(os.path.normpath(run)) for run in seeds_of}
+    # runs of one folder name (study runs of two agents) keep their parent's name too
+    names = {run: os.path.join(*os.path.normpath(run).split(os.sep)[-2:])
+             if list(base.values()).count(name) > 1 else name for run, name in base.items()}
     out = []
     for (run, seed), group in policies.items():
-        label = os.path.basename(os.path.normpath(run)) + (f" seed {seed}" if len(seeds_of[run]) > 1 else "")
+        label = names[run] + (f" seed {seed}" if len(seeds_of[run]) > 1 else "")
         fit = adjusted_mean(np.array([r["energy"] for r in group]), np.array([r["return"] for r in group]),
                             population_mean)
         marked = np.array([r["source"].startswith("training evaluation") for r in group])
