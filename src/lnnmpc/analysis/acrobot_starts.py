@@ -32,6 +32,7 @@ import dataclasses
 import os
 import sys
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from lnnmpc.train.config import ConfigError
 # them (episode i's from fold_in(key, i)); runs started before it played other starts. A run's provenance names its
 # code's commit (time where git does not know the commit: a shallow clone).
 KEYS_SINCE_COMMIT, KEYS_SINCE_TIME = "45dda0c", "2026-11-29T17:23:29Z"
+TRAINING = "training evaluation"  # the ``source`` of a run's own evaluation episodes (then its env step)
 
 
 def trainer_evaluation_key(seed: int, index: int):
@@ -167,13 +169,13 @@ def check_current_starts(run: str) -> None:
                           f"({KEYS_SINCE_TIME[:10]}), so they cannot be recomputed")
 
 
-def trainer_episodes(run: str, env, step: int | None) -> tuple[int, list[dict]]:
-    """(env step, episode rows) of the run's training-time evaluation at ``step`` (None: its last): every seed's
-    episodes, each row with its seed and the start's angles (each seed's policy is fitted apart)."""
+def trainer_episodes(run: str, config, env, step: int | None) -> tuple[int, list[dict]]:
+    """(env step, episode rows) of the training-time evaluation at ``step`` (None: its last) of ``run`` (saved
+    configuration ``config``): every seed's episodes, each row with its seed and the start's angles (each seed's
+    policy is fitted apart)."""
     from lnnmpc.train import runfolder
 
     check_current_starts(run)
-    config = runfolder.saved_config(run)
     rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
     steps = sorted({int(r["env_step"]) for r in rows})
     if not steps:
@@ -183,7 +185,7 @@ def trainer_episodes(run: str, env, step: int | None) -> tuple[int, list[dict]]:
         raise ConfigError(f"{run!r} evaluated at {', '.join(map(str, steps))}, not at {chosen}")
     qpos = start_qpos(env, trainer_evaluation_key(config.seed, steps.index(chosen)), config.seeds,
                       config.eval_episodes)
-    out = [{"run": run, "source": f"training evaluation {chosen}", "seed": int(r["seed"]),
+    out = [{"run": run, "source": f"{TRAINING} {chosen}", "seed": int(r["seed"]),
             "episode": int(r["episode"]), "qpos": qpos[int(r["seed"]), int(r["episode"])],
             "return": float(r["return"])} for r in rows if int(r["env_step"]) == chosen]
     if len({(r["seed"], r["episode"]) for r in out}) != len(out):
@@ -205,16 +207,14 @@ def dm_control_start_qpos(env, seed: int, episodes: int) -> np.ndarray:
     return np.stack(starts)
 
 
-def csv_episodes(run: str, path: str, env, step: int) -> list[dict]:
+def csv_episodes(run: str, path: str, config, env, step: int) -> list[dict]:
     """Episode rows of a clean ``cli eval`` CSV of ``run``'s policy at ``step`` (MJX or dm_control; its
-    ``eval_seed`` decides the starts)."""
+    ``eval_seed`` decides the starts); ``config``: the run's saved configuration."""
     import jax
 
-    from lnnmpc.train import runfolder
     from lnnmpc.train.paired import read_episode_returns
 
     evaluation = read_episode_returns(path)
-    rows = runfolder.read_csv(path)
     backend = evaluation.episodes_from.get("backend")
     if backend not in ("mjx", "dm_control") or evaluation.episodes_from.get("obs") != "clean":
         raise ConfigError(f"{path!r}: only clean evaluations are supported (backend mjx or dm_control, obs clean), "
@@ -222,9 +222,8 @@ def csv_episodes(run: str, path: str, env, step: int) -> list[dict]:
     if "eval_seed" not in evaluation.episodes_from:
         raise ConfigError(f"{path!r} records no eval_seed (written before `cli eval` recorded it, 2026-12-04): "
                           "its starts cannot be recomputed")
-    if int(rows[0]["env_step"]) != step:
-        raise ConfigError(f"{path!r} evaluated the policy at {rows[0]['env_step']}, the run's evaluation is at {step}")
-    config = runfolder.saved_config(run)
+    if evaluation.env_step != step:
+        raise ConfigError(f"{path!r} evaluated the policy at {evaluation.env_step}, the run's evaluation is at {step}")
     seeds, episodes = config.seeds, 1 + max(e for _, e in evaluation.returns)
     seed = int(evaluation.episodes_from["eval_seed"])
     if backend == "mjx":
@@ -235,9 +234,19 @@ def csv_episodes(run: str, path: str, env, step: int) -> list[dict]:
              "return": value} for (s, e), value in sorted(evaluation.returns.items())]
 
 
-def policy_fits(rows: list[dict], population_mean: float) -> list[tuple[str, Adjusted, float, float]]:
-    """(label, fit, training evaluation's plain mean, :func:`source_gap` of the training evaluation's episodes)
-    per policy ((run, seed) of ``rows``, in their order)."""
+class PolicyFit(NamedTuple):
+    """One policy's line (:func:`adjusted_mean`) and what the table and the figure show beside it."""
+
+    label: str
+    fit: Adjusted
+    trained_mean: float  # the plain mean of its training evaluation's episodes (nan: none fitted)
+    gap: float  # :func:`source_gap` of those episodes against the others (nan: not both kinds)
+    episodes: list[dict]  # its rows
+    trained: np.ndarray  # (episodes,) bool: which rows are its training evaluation's
+
+
+def policy_fits(rows: list[dict], population_mean: float) -> list[PolicyFit]:
+    """One :class:`PolicyFit` per policy ((run, seed) of ``rows``, in their order)."""
     policies: dict[tuple[str, int], list[dict]] = {}
     for row in rows:
         policies.setdefault((row["run"], row["seed"]), []).append(row)
@@ -251,16 +260,15 @@ def policy_fits(rows: list[dict], population_mean: float) -> list[tuple[str, Adj
     out = []
     for (run, seed), group in policies.items():
         label = names[run] + (f" seed {seed}" if len(seeds_of[run]) > 1 else "")
-        fit = adjusted_mean(np.array([r["energy"] for r in group]), np.array([r["return"] for r in group]),
-                            population_mean)
-        marked = np.array([r["source"].startswith("training evaluation") for r in group])
-        returns = np.array([r["return"] for r in group])
-        gap = source_gap(np.array([r["energy"] for r in group]), returns, marked)
-        out.append((label, fit, float(returns[marked].mean()) if marked.any() else float("nan"), gap))
+        energy, returns = np.array([r["energy"] for r in group]), np.array([r["return"] for r in group])
+        trained = np.array([r["source"].startswith(TRAINING) for r in group])
+        out.append(PolicyFit(label, adjusted_mean(energy, returns, population_mean),
+                             float(returns[trained].mean()) if trained.any() else float("nan"),
+                             source_gap(energy, returns, trained), group, trained))
     return out
 
 
-def markdown(fits: list[tuple[str, Adjusted, float, float]], population: np.ndarray) -> str:
+def markdown(fits: list[PolicyFit], population: np.ndarray) -> str:
     """The printed table under a line on the ``population``'s energies: one row per policy, then the mean over the
     policies (the adjusted mean's standard error: the root of the summed variances over the count)."""
     lines = [f"population mean start energy {population.mean():.2f} J (sd {population.std():.2f} J over "
@@ -270,45 +278,47 @@ def markdown(fits: list[tuple[str, Adjusted, float, float]], population: np.ndar
     def cell(value: float) -> str:  # "-" where a policy has no such episodes
         return "-" if np.isnan(value) else f"{value:.1f}"
 
-    for label, fit, trained, gap in fits:
+    for label, fit, trained, gap, *_ in fits:
         lines.append(f"| {label} | {fit.episodes} | {cell(trained)} | {fit.mean:.1f} | {fit.energy_mean:.2f} | "
                      f"{fit.slope:.1f} | {fit.r:.2f} | {cell(gap)} | {fit.adjusted:.1f} ± {fit.stderr:.1f} |")
     if len(fits) > 1:
         k = len(fits)
-        every = [fit for _, fit, _, _ in fits]
+        every = [f.fit for f in fits]
         se = np.sqrt(sum(f.stderr ** 2 for f in every)) / k
-        lines.append(f"| mean of {k} | {sum(f.episodes for f in every)} | {cell(np.mean([f[2] for f in fits]))} | "
+        trained = cell(np.mean([f.trained_mean for f in fits]))
+        lines.append(f"| mean of {k} | {sum(f.episodes for f in every)} | {trained} | "
                      f"{np.mean([f.mean for f in every]):.1f} | {np.mean([f.energy_mean for f in every]):.2f} "
-                     f"| | | {cell(np.mean([f[3] for f in fits]))} | {np.mean([f.adjusted for f in every]):.1f} ± "
+                     f"| | | {cell(np.mean([f.gap for f in fits]))} | {np.mean([f.adjusted for f in every]):.1f} ± "
                      f"{se:.1f} |")
     return "\n".join(lines) + "\n"
 
 
-def plot(path: str, rows: list[dict], fits: list[tuple[str, Adjusted, float, float]], population_mean: float) -> None:
+def plot(path: str, fits: list[PolicyFit], population_mean: float) -> None:
     """Returns against the start's energy per policy (training evaluations as dots, ``--with`` CSVs as crosses),
     each policy's fitted line, the population's mean energy as a dashed line."""
-    from lnnmpc.analysis.report import _figure
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     from lnnmpc.train.png import save_png
 
-    plt, fig, axes = _figure(1, 1, size=5.5)
-    ax = axes[0, 0]
-    labels = [fit[0] for fit in fits]
-    policies = list(dict.fromkeys((r["run"], r["seed"]) for r in rows))
-    for i, ((run, seed), (label, fit, _, _)) in enumerate(zip(policies, fits, strict=True)):
-        colour = f"C{i % 10}"
-        mine = [r for r in rows if (r["run"], r["seed"]) == (run, seed)]
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    for i, policy in enumerate(fits):
+        colour, fit = f"C{i % 10}", policy.fit
+        energy = np.array([r["energy"] for r in policy.episodes])
+        returns = np.array([r["return"] for r in policy.episodes])
         for trained, marker in ((True, "o"), (False, "x")):
-            part = [r for r in mine if r["source"].startswith("training evaluation") == trained]
-            if part:
-                ax.scatter([r["energy"] for r in part], [r["return"] for r in part], s=14, marker=marker, color=colour,
-                           alpha=0.7)
-        xs = np.array([min(r["energy"] for r in mine), max(r["energy"] for r in mine)])
+            part = policy.trained == trained
+            if part.any():
+                ax.scatter(energy[part], returns[part], s=14, marker=marker, color=colour, alpha=0.7)
+        xs = np.array([energy.min(), energy.max()])
         ax.plot(xs, fit.mean + fit.slope * (xs - fit.energy_mean), color=colour,
-                label=f"{label}: {fit.adjusted:.0f} ± {fit.stderr:.0f}")
+                label=f"{policy.label}: {fit.adjusted:.0f} ± {fit.stderr:.0f}")
     ax.axvline(population_mean, color="0.4", linestyle="--", linewidth=1, label="population mean energy")
     ax.set_xlabel("start's mechanical energy at rest (J)")
     ax.set_ylabel("episode return")
-    ax.set_title(f"{len(labels)} policies: dots training evaluation, crosses other episodes", fontsize=9)
+    ax.set_title(f"{len(fits)} policies: dots training evaluation, crosses other episodes", fontsize=9)
     ax.legend(fontsize=7)
     fig.tight_layout()
     save_png(fig, path, dpi=110)
@@ -351,10 +361,10 @@ def run_analysis(args: argparse.Namespace) -> str:
         if not config.task.startswith("acrobot"):
             raise ConfigError(f"{run!r} trained {config.task}; this analysis reads acrobot runs only")
         env = config_env(config, {})
-        step, trained = trainer_episodes(run, env, args.step)
+        step, trained = trainer_episodes(run, config, env, args.step)
         rows += [] if args.without_training else trained
         for path in extra.get(run, []):
-            rows += csv_episodes(run, path, env, step)
+            rows += csv_episodes(run, path, config, env, step)
     energies = rest_energy(env, np.stack([r["qpos"] for r in rows]))
     for row, energy in zip(rows, energies, strict=True):
         row["energy"] = float(energy)
@@ -365,7 +375,7 @@ def run_analysis(args: argparse.Namespace) -> str:
     runfolder.write_csv(f"{args.out}.csv", [*kept[:4], "shoulder", "elbow", *kept[4:]],
                         [{**{k: r[k] for k in kept}, "shoulder": float(r["qpos"][0]), "elbow": float(r["qpos"][1])}
                          for r in rows])
-    plot(f"{args.out}.png", rows, fits, population_mean)
+    plot(f"{args.out}.png", fits, population_mean)
     return markdown(fits, population)
 
 

@@ -45,6 +45,7 @@ class EpisodeReturns:
     path: str
     returns: dict[tuple[int, int], float]
     episodes_from: dict[str, str]  # backend, obs and eval_seed (absent in CSVs written before it was recorded)
+    env_step: int  # the evaluated checkpoint's (one per CSV)
 
     def values(self, keys: list[tuple[int, int]]) -> np.ndarray:
         """The returns of rows ``keys``, in that order (n,)."""
@@ -76,7 +77,7 @@ def read_episode_returns(path: str) -> EpisodeReturns:
     for c, value in episodes_from.items():
         if any(r[c] != value for r in rows):
             raise ConfigError(f"{path!r} mixes several values of {c}")
-    return EpisodeReturns(path=path, returns=returns, episodes_from=episodes_from)
+    return EpisodeReturns(path=path, returns=returns, episodes_from=episodes_from, env_step=int(steps[0]))
 
 
 def check_same_episodes(first: EpisodeReturns, other: EpisodeReturns, common: bool = False) -> None:
