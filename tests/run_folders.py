@@ -1,17 +1,16 @@
 """Fake run folders for the tests of lnnmpc.experiments and the batch scripts: a run's config.json, eval.csv,
 checkpoints and evaluation files, written as the trainer and `cli eval` lay them out (no training)."""
 
-import csv
 import os
+
+from lnnmpc.train import runfolder
 
 
 def write_rows(path, rows):
-    """A CSV file of ``rows`` (dicts; the first one's keys are the header), its folder made as needed."""
+    """A CSV file of ``rows`` (dicts; the first one's keys are the header) written as the trainer writes its CSVs
+    (:func:`lnnmpc.train.runfolder.write_csv`), its folder made as needed."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    runfolder.write_csv(path, list(rows[0]), rows)
 
 
 def fake_run(folder, last_step, checkpoint=True, returns=None, eval_name=None):
