@@ -101,10 +101,15 @@ def test_state_fields_and_time_limit(acrobot):
 
 
 def test_reset_matches_reset_to_of_sampled_state(acrobot):
+    """reset(key) starts where reset_start(key) says: the state drawn from the key's first half (a different
+    state from the whole key's), the corruptions seeded by its second."""
     key = jax.random.key(11)
     state = jax.jit(acrobot.reset)(key)
-    k_init, k_obs = jax.random.split(key)
-    qpos, qvel = acrobot.initial_qpos_qvel(k_init)
+    qpos, qvel, k_obs = acrobot.reset_start(key)
+    k_init, k_second = jax.random.split(key)
+    np.testing.assert_array_equal(np.asarray(qpos), np.asarray(acrobot.initial_qpos_qvel(k_init)[0]))
+    np.testing.assert_array_equal(jax.random.key_data(k_obs), jax.random.key_data(k_second))
+    assert not np.allclose(np.asarray(qpos), np.asarray(acrobot.initial_qpos_qvel(key)[0]))
     again = jax.jit(acrobot.reset_to)(qpos, qvel, k_obs)
     np.testing.assert_allclose(np.asarray(state.obs), np.asarray(again.obs), atol=1e-6)
     np.testing.assert_allclose(np.asarray(state.physics.qpos), np.asarray(qpos), atol=1e-6)

@@ -60,14 +60,14 @@ def trainer_evaluation_key(seed: int, index: int):
 def start_qpos(env, key, seeds: int, episodes: int) -> np.ndarray:
     """Initial joint positions (seeds, episodes, nq) of the episodes that an evaluation with ``key`` plays on
     ``env`` (the trainer's and ``cli eval``'s on MJX: ``key`` split into ``seeds``, episode i's reset key from
-    :func:`lnnmpc.train.loop.evaluation_keys`, then :meth:`Env.reset`'s split of it)."""
+    :func:`lnnmpc.train.loop.evaluation_keys`, its start from :meth:`Env.reset_start`)."""
     import jax
 
     from lnnmpc.train.loop import evaluation_keys
 
     def one_seed(seed_key):
         resets, _ = evaluation_keys(seed_key, episodes)
-        return jax.vmap(lambda k: env.initial_qpos_qvel(jax.random.split(k)[0])[0])(resets)
+        return jax.vmap(lambda k: env.reset_start(k)[0])(resets)
 
     return np.asarray(jax.vmap(one_seed)(jax.random.split(key, seeds)), np.float64)
 

@@ -118,15 +118,21 @@ class Env:
         """Samples dm_control's initial-state distribution: (qpos (nq,), qvel (nv,))."""
         return self.spec.init(key, self.joints, self.mj_model.nq, self.mj_model.nv)
 
+    def reset_start(self, key: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """What an episode begun with ``key`` starts from, by :meth:`reset` and by a restart of
+        :meth:`step_or_reset`: (qpos (nq,), qvel (nv,)) drawn by :meth:`initial_qpos_qvel` from the key's first
+        half, and the second half, which seeds the corruptions."""
+        k_init, k_obs = jax.random.split(key)
+        qpos, qvel = self.initial_qpos_qvel(k_init)
+        return qpos, qvel, k_obs
+
     def reset(self, key: jax.Array) -> EnvState:
         """Starts an episode from dm_control's initial-state distribution (one jitted program per environment and
         argument shapes: :func:`_traced_once`)."""
         return _jitted_reset(self, key)
 
     def _reset(self, key: jax.Array) -> EnvState:
-        k_init, k_obs = jax.random.split(key)
-        qpos, qvel = self.initial_qpos_qvel(k_init)
-        return self.reset_to(qpos, qvel, k_obs)
+        return self.reset_to(*self.reset_start(key))
 
     def reset_to(self, qpos: jax.Array, qvel: jax.Array, key: jax.Array | None = None) -> EnvState:
         """Starts an episode at a given physics state (qpos (nq,), qvel (nv,)); ``key`` seeds corruptions."""
@@ -160,8 +166,8 @@ class Env:
 
     def _step_or_reset(self, state: EnvState, action: jax.Array, restart: jax.Array, key: jax.Array) -> EnvState:
         action = self._checked_action(action)
-        k_init, k_obs = jax.random.split(key)
-        fresh = phys.fresh_data(self.mjx_model, *self.initial_qpos_qvel(k_init))
+        qpos, qvel, k_obs = self.reset_start(key)
+        fresh = phys.fresh_data(self.mjx_model, qpos, qvel)
         data, rewards = self._control_steps(state.physics, action, restart, fresh)
         return phys.select(restart, self._start(data, k_obs), self._stepped(state, data, rewards))
 
