@@ -46,14 +46,14 @@ TRAINING = "training evaluation"  # the ``source`` of a run's own evaluation epi
 
 
 def trainer_evaluation_key(seed: int, index: int):
-    """The key of a run's ``index``-th training-time evaluation (0: the first), as the trainer splits it from
-    ``key(seed + 10,000)`` (``_evaluate_now`` in :mod:`lnnmpc.train.trainer`): split into the run's seeds, it
-    gives each seed's episodes."""
-    import jax
+    """The key of a run's ``index``-th training-time evaluation (0: the first), drawn as the trainer draws it
+    (:func:`lnnmpc.train.trainer.evaluation_key_chain`, then :func:`~lnnmpc.train.trainer.next_evaluation_key`
+    once per evaluation): split into the run's seeds, it gives each seed's episodes."""
+    from lnnmpc.train.trainer import evaluation_key_chain, next_evaluation_key
 
-    chain = jax.random.key(seed + 10_000)
+    chain = evaluation_key_chain(seed)
     for _ in range(index + 1):
-        chain, key = jax.random.split(chain)
+        chain, key = next_evaluation_key(chain)
     return key
 
 
@@ -195,13 +195,11 @@ def trainer_episodes(run: str, config, env, step: int | None) -> tuple[int, list
 
 def dm_control_start_qpos(env, seed: int, episodes: int) -> np.ndarray:
     """Initial joint positions (episodes, nq) of the episodes ``cli eval --backend dm_control --seed seed`` plays
-    (episode e, for every seed of the policy: dm_control's task seeded with ``seed + e``,
-    :func:`lnnmpc.train.dm_backend.run_episodes`)."""
-    from lnnmpc.train.dm_backend import load_dm_control
+    (the same for every seed of the policy: :func:`lnnmpc.train.dm_backend.episode_tasks`, reset)."""
+    from lnnmpc.train.dm_backend import episode_tasks
 
     starts = []
-    for e in range(episodes):
-        sim = load_dm_control(env, seed + e)
+    for sim in episode_tasks(env, seed, episodes):
         sim.reset()
         starts.append(np.array(sim.physics.data.qpos, np.float64))
     return np.stack(starts)

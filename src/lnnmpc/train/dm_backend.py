@@ -67,6 +67,12 @@ def _split_each(keys: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
     return split[:, 0], split[:, 1], split[:, 2]
 
 
+def episode_tasks(env: Env, seed: int, episodes: int) -> list:
+    """One seeded dm_control task per episode, as :func:`run_episodes` plays them: episode e's drawn with
+    ``seed + e`` (its initial state is the task's after ``reset()``)."""
+    return [load_dm_control(env, seed + e) for e in range(episodes)]
+
+
 def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: jax.Array, *, seed: int = 0,
                  seed_ids: list[int] | None = None,
                  on_step: Callable[[int, int, int, Any, float], None] | None = None,
@@ -90,7 +96,7 @@ def run_episodes(env: Env, agent: Any, agent_states: Any, episodes: int, key: ja
     if len(seed_ids) != seeds:
         raise ValueError(f"seed_ids has {len(seed_ids)} entries for {seeds} seed(s) of agent states")
     n = (seeds, episodes)
-    sims = [[load_dm_control(env, seed + e) for e in range(episodes)] for _ in range(seeds)]
+    sims = [episode_tasks(env, seed, episodes) for _ in range(seeds)]
     timesteps = [[sim.reset() for sim in row] for row in sims]
     obs = np.stack([[flat_observation(ts, env.kept) for ts in row] for row in timesteps])
     k_corrupt, k_act, _ = _split_each(episode_keys(key, seed_ids, episodes))

@@ -58,6 +58,19 @@ COMPILE_FILE = "compile.csv"  # seconds to lower and compile each program compil
 EVAL_COLUMNS = ("return", "effective_rank", "prior_return")
 
 
+def evaluation_key_chain(seed: int) -> jax.Array:
+    """The key a run with master seed ``seed`` splits its evaluations' keys from, one per evaluation in turn
+    (:func:`next_evaluation_key`)."""
+    return jax.random.key(seed + 10_000)
+
+
+def next_evaluation_key(chain: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """(the chain for the evaluations after this one, this evaluation's key): split once from ``chain``; the key is
+    then split into the run's seeds."""
+    chain, key = jax.random.split(chain)
+    return chain, key
+
+
 class TrainingDiverged(RuntimeError):
     """A loss or parameter became NaN/Inf; the message names the environment step, seed and metric."""
 
@@ -165,7 +178,7 @@ class _Run:
             "provenance": runfolder.read_provenance(self.run) + [provenance_entry()]})
         keys = self.placement.put(jax.random.split(jax.random.key(c.seed), c.seeds))
         state = self.placement.abstract(self.setup.state_shapes)  # shapes and placement of the training state
-        self.counters["eval_key"] = _key_list(jax.random.key(c.seed + 10_000))
+        self.counters["eval_key"] = _key_list(evaluation_key_chain(c.seed))
         resumed = self.setup.resume_step is not None
         if resumed:
             self.ts, self.counters = restore_checkpoint(self.run, self.setup.resume_step, state)
@@ -304,7 +317,7 @@ class _Run:
 
     def _evaluate_now(self) -> None:
         n = self.counters
-        eval_key, key = jax.random.split(jax.random.wrap_key_data(jnp.asarray(n["eval_key"], jnp.uint32)))
+        eval_key, key = next_evaluation_key(jax.random.wrap_key_data(jnp.asarray(n["eval_key"], jnp.uint32)))
         n["eval_key"], n["last_eval"] = _key_list(eval_key), n["env_steps"]
         keys = self.placement.put(jax.random.split(key, self.config.seeds))
         values = {k: np.asarray(v) for k, v in self.evaluate(self.ts.agent, keys).items()}  # (seeds, episodes)
