@@ -6,6 +6,7 @@
 #
 # ARCHIVE_GLOB: the parts (split -b, in name order) of a .tgz of runs/jaxcache made on the first machine; they are
 #   concatenated and unpacked at the repository root (an empty glob runs without a cache: the baseline).
+#   runs/jaxcache and runs/cachecheck are emptied first (run it on the device machine, not where a cache is kept).
 # JOBS: "<name> <trainer arguments>" lines (device_batch.sh's format; # comments skipped), all launched side by side,
 #   each with --out runs/cachecheck/<name> --compile-cache runs/jaxcache, stopped after SECONDS (SIGTERM, then
 #   SIGKILL 20 s later: only compile.csv is wanted, whose rows are written as each program is ready).
