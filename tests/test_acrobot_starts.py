@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from lnnmpc.analysis import acrobot_starts as starts
+from lnnmpc.train import provenance
 
 RESULTS = os.path.join(os.path.dirname(__file__), "..", "experiments", "results",
                        "cfc-acrobot-recipe-ar4-ar8-h100-200k")
@@ -72,12 +73,12 @@ def test_provenance_decides_whether_a_runs_starts_can_be_recomputed():
     """An entry's commit where git knows it; otherwise (a shallow clone, a commit of another repository) its start
     time against the change's."""
     unknown = {"commit": "f" * 40}
-    assert starts.plays_current_starts({"git": unknown, "time": "2026-12-01T00:00:00Z"})
-    assert not starts.plays_current_starts({"git": unknown, "time": "2026-11-28T00:00:00Z"})
-    assert not starts.plays_current_starts({"time": "2026-11-29T17:23:28Z"})
-    assert starts.plays_current_starts({"time": "2026-11-29T17:23:29Z"})
+    assert provenance.plays_current_starts({"git": unknown, "time": "2026-12-01T00:00:00Z"})
+    assert not provenance.plays_current_starts({"git": unknown, "time": "2026-11-28T00:00:00Z"})
+    assert not provenance.plays_current_starts({"time": "2026-11-29T17:23:28Z"})
+    assert provenance.plays_current_starts({"time": "2026-11-29T17:23:29Z"})
     for run in RUNS:
-        starts.check_current_starts(run)  # the committed GPU runs (code 0c4e564, 2026-12-05)
+        provenance.check_current_starts(run)  # the committed GPU runs (code 0c4e564, 2026-12-05)
 
 
 def test_policies_are_labelled_apart_when_their_folders_share_a_name():

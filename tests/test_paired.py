@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
+import json
 import os
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.paired import main
+from lnnmpc.train.paired import check_same_training_episodes, main, paired_rows, read_training_evaluation
 
 FIELDS = ["env_step", "seed", "episode", "return", "backend", "obs", "actor", "planner", "eval_seed"]
 
@@ -74,3 +75,60 @@ def test_common_compares_the_rows_both_hold_and_old_csvs_are_noted(tmp_path, cap
     apart = _csv(tmp_path / "apart.csv", [5], seeds=1, reverse=False, step=200)
     runfolder.write_csv(apart, FIELDS, [{**runfolder.read_csv(apart)[0], "seed": 3}])
     assert main([long, apart, "--common"]) == 2 and "share no (seed, episode) row" in capsys.readouterr().err
+
+
+def _run(path, evaluations, *, seeds=2, seed=1, time="2026-12-01T00:00:00Z", **config):
+    """A run folder: config.json (what decides its evaluations' episodes, one provenance entry started at
+    ``time``) and eval.csv, ``evaluations`` mapping each env step to its returns in (seed, episode) order."""
+    path.mkdir(parents=True)
+    settings = {"task": "acrobot-swingup", "seed": seed, "seeds": seeds, "eval_episodes": 2, "eval_obs": {},
+                "physics": "fast", **config}
+    (path / "config.json").write_text(json.dumps({"config": settings, "provenance": [{"time": time}]}))
+    rows = [{"env_step": step, "seed": i // 2, "episode": i % 2, "return": r}
+            for step, returns in evaluations.items() for i, r in enumerate(returns)]
+    runfolder.write_csv(str(path / "eval.csv"), ["env_step", "seed", "episode", "return"], rows)
+    return str(path)
+
+
+def test_runs_are_paired_on_the_training_evaluation_they_share(tmp_path, capsys):
+    """Runs of one master seed differing in other settings (the rate, the action repeat) play the same episodes at
+    their k-th evaluation: the last step both evaluated at by default (20: the returns of the hand computation
+    above give its numbers again), --step for an earlier one (10: differences 0, 1, -1, 0, so +0.0 with standard
+    error sqrt(2/3) / 2 = 0.41; correlation 4 / 5 = 0.80)."""
+    a = _run(tmp_path / "a", {10: [1, 2, 3, 4], 20: [10, 20, 30, 40]}, action_repeat=4)
+    b = _run(tmp_path / "b", {10: [1, 3, 2, 4], 20: [12, 19, 35, 44], 30: [0, 0, 0, 0]}, action_repeat=8, lr=6e-4)
+    assert main(["--runs", a, b]) == 0
+    out = capsys.readouterr().out
+    assert "| a | 4 | 25.0 ± 11.2 |  |  |  |" in out and "| b | 4 | 27.5 ± 12.7 | +2.5 ± 1.3 | 3 / 1 | 0.99 |" in out
+    assert main(["--runs", a, b + "/", "--step", "10", "--labels", "recipe", "lr"]) == 0
+    assert "| lr | 4 | 2.5 ± 1.1 | +0.0 ± 0.4 | 1 / 1 | 0.80 |" in capsys.readouterr().out
+
+
+def test_runs_of_other_episodes_are_refused_naming_why(tmp_path, capsys):
+    a = _run(tmp_path / "a", {10: [1, 2, 3, 4], 20: [5, 6, 7, 8]})
+    cases = [
+        (_run(tmp_path / "seed2", {20: [5, 6, 7, 8]}, seed=2), "master seed (--seed) 2 against 1"),
+        (_run(tmp_path / "late", {20: [5, 6, 7, 8]}), "evaluation number (0: the first) 0 against 1"),
+        (_run(tmp_path / "task", {10: [1] * 4, 20: [1] * 4}, task="cartpole-swingup"),
+         'task "cartpole-swingup" against "acrobot-swingup"'),
+        (_run(tmp_path / "old", {10: [1] * 4, 20: [1] * 4}, time="2026-11-28T00:00:00Z"),
+         "drew their starts before 45dda0c"),
+        (_run(tmp_path / "none", {30: [1] * 4}), "the runs share no evaluation step"),
+        (str(tmp_path / "missing"), "is not a run folder"),
+    ]
+    for other, reason in cases:
+        assert main(["--runs", a, other]) == 2
+        assert reason in capsys.readouterr().err, other
+    assert main(["--runs", a, a, "--step", "15"]) == 2 and "evaluated at 10, 20, not at 15" in capsys.readouterr().err
+    assert main([a, a, "--step", "10"]) == 2 and "give it with --runs" in capsys.readouterr().err
+
+
+def test_the_committed_constant_rate_run_pairs_with_the_recipe():
+    """RESULTS.md [89]: master seed 1's recipe and its constant-rate line tie at 161,088 (+7.0 ± 44.6, 5 of 10)."""
+    recipe = "experiments/results/cfc-acrobot-recipe-ar4-ar8-h100-200k/acrobot-recipe-ar4-seed1"
+    constant = "experiments/results/cfc-acrobot-recipe-constlr-h100-200k/acrobot-recipe-constlr-seed1"
+    root = os.path.join(os.path.dirname(__file__), "..")
+    first, other = (read_training_evaluation(os.path.join(root, r), 161_088) for r in (recipe, constant))
+    check_same_training_episodes(first, other)
+    row = paired_rows([first, other], ["recipe", "constant"])[1]
+    assert (round(row["diff"], 1), round(row["se"], 1), row["wins"], row["losses"]) == (7.0, 44.6, 5, 5)

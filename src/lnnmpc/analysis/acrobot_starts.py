@@ -17,8 +17,9 @@ return over that distribution, with its standard error from the fit (:func:`adju
 final checkpoint's (``--step``: an earlier evaluation's episodes, for runs whose policy at that step the CSVs
 evaluated). Where a policy has episodes of both kinds, the table also gives how much more its training evaluation's
 episodes returned than the others at equal start energy (:func:`source_gap`): what the energy leaves out of one set
-of starts' luck. Runs started (or resumed) with code older than KEYS_SINCE_COMMIT, whose evaluations drew their starts
-otherwise, and CSVs without an ``eval_seed`` column are refused (:func:`check_current_starts`).
+of starts' luck. Runs started (or resumed) with code older than `provenance.KEYS_SINCE_COMMIT`, whose evaluations drew
+their starts otherwise, and CSVs without an ``eval_seed`` column are refused
+(:func:`lnnmpc.train.provenance.check_current_starts`).
 
 Writes ``PREFIX.csv`` (one row per episode: run, source, seed, episode, start angles, energy, return) and
 ``PREFIX.png`` (returns against the start's energy, one colour per policy, the fitted lines and the population's
@@ -37,11 +38,8 @@ from typing import NamedTuple
 import numpy as np
 
 from lnnmpc.train.config import ConfigError
+from lnnmpc.train.provenance import check_current_starts
 
-# Since this commit (2026-11-29) the trainer's and `cli eval`'s MJX episodes take their keys as start_qpos derives
-# them (episode i's from fold_in(key, i)); runs started before it played other starts. A run's provenance names its
-# code's commit (time where git does not know the commit: a shallow clone).
-KEYS_SINCE_COMMIT, KEYS_SINCE_TIME = "45dda0c", "2026-11-29T17:23:29Z"
 TRAINING = "training evaluation"  # the ``source`` of a run's own evaluation episodes (then its env step)
 
 
@@ -138,35 +136,6 @@ def source_gap(energy: np.ndarray, returns: np.ndarray, trained: np.ndarray) -> 
     design = np.stack([trained, ~trained, np.asarray(energy, np.float64)], axis=1).astype(np.float64)
     coef, *_ = np.linalg.lstsq(design, np.asarray(returns, np.float64), rcond=None)
     return float(coef[0] - coef[1])
-
-
-def plays_current_starts(entry: dict) -> bool:
-    """Whether a provenance entry (:mod:`lnnmpc.train.provenance`) ran code whose evaluations draw their starts as
-    :func:`start_qpos` does: its commit descends from KEYS_SINCE_COMMIT (or, where git cannot tell, it started after
-    KEYS_SINCE_TIME)."""
-    import subprocess
-
-    commit = (entry.get("git") or {}).get("commit")
-    if commit:
-        root = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..")
-        done = subprocess.run(["git", "-C", root, "merge-base", "--is-ancestor", KEYS_SINCE_COMMIT, commit],
-                              capture_output=True)
-        if done.returncode in (0, 1):  # 128: a commit git does not know
-            return done.returncode == 0
-    return str(entry.get("time", "")) >= KEYS_SINCE_TIME
-
-
-def check_current_starts(run: str) -> None:
-    """ConfigError where ``run`` has no provenance or a start or resume of it ran code older than KEYS_SINCE_COMMIT
-    (its evaluations' starts cannot be recomputed)."""
-    from lnnmpc.train import runfolder
-
-    entries = runfolder.read_provenance(run)
-    old = [e for e in entries if not plays_current_starts(e)]
-    if not entries or old:
-        when = f"started at {old[0].get('time', '?')}" if old else "records no provenance"
-        raise ConfigError(f"{run!r} {when}: its evaluations drew their starts before {KEYS_SINCE_COMMIT} "
-                          f"({KEYS_SINCE_TIME[:10]}), so they cannot be recomputed")
 
 
 def trainer_episodes(run: str, config, env, step: int | None) -> tuple[int, list[dict]]:

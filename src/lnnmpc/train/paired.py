@@ -19,6 +19,15 @@ training's ``eval.csv`` (each of its evaluations plays episodes of a key of its 
 rows all CSVs hold instead: an evaluation's first k episodes start as those of a longer one with the same seed
 (the same initial states and random draws; a batch of another size can round differently, and a chaotic
 episode amplifies that, so one policy's two evaluations of an episode may part).
+
+    python -m lnnmpc.train.paired --runs runs/a runs/b [--step 200128]
+
+compares run folders on their training-time evaluations instead (:func:`read_training_evaluation`): a run's k-th
+evaluation draws its episodes from its master seed and k alone (``lnnmpc.train.trainer.evaluation_key_chain``), so
+runs of one task with the same master seed, seed count, episode count and evaluation corruption, evaluated at the
+same step as their k-th evaluation, played the same episodes whatever else their settings (the rate, the Q heads,
+the action repeat). The step is ``--step`` or the last one every run evaluated at; runs that differ in any of
+those, or that started with code older than ``lnnmpc.train.provenance.KEYS_SINCE_COMMIT``, are refused naming why.
 """
 
 from __future__ import annotations
@@ -63,7 +72,8 @@ def read_episode_returns(path: str) -> EpisodeReturns:
     if missing:
         raise ConfigError(f"{path!r} is not a CSV of `cli eval` (no {', '.join(missing)} column; a training's "
                           "eval.csv plays other episodes at each evaluation): evaluate each policy with "
-                          "`python -m lnnmpc.train.cli eval RUN --out CSV`")
+                          "`python -m lnnmpc.train.cli eval RUN --out CSV`, or compare runs' training "
+                          "evaluations with `--runs RUN RUN`")
     steps = sorted({r["env_step"] for r in rows}, key=int)
     if len(steps) > 1:
         raise ConfigError(f"{path!r} holds evaluations of several checkpoints ({', '.join(steps)}): one per CSV")
@@ -97,6 +107,61 @@ def check_same_episodes(first: EpisodeReturns, other: EpisodeReturns, common: bo
                           f"{only_first[:4] or 'none'}, only in {os.path.basename(other.path)!r} "
                           f"{only_other[:4] or 'none'} (evaluate both with the same --episodes, or compare the "
                           "rows they share with --common)")
+
+
+# What decides a run's training-time episodes besides the evaluation's index: config.json's "config" entries, each
+# with the name a refusal gives it
+_SAME_TRAINING_EPISODES = {"task": "task", "seed": "master seed (--seed)", "seeds": "seed count (--seeds)",
+                           "eval_episodes": "evaluation episodes", "eval_obs": "evaluation corruption",
+                           "physics": "physics profile"}
+
+
+def read_training_evaluation(run: str, step: int) -> EpisodeReturns:
+    """Run folder ``run``'s training-time evaluation at env step ``step`` as :class:`EpisodeReturns`, its
+    ``episodes_from`` naming what decides those episodes: the settings of _SAME_TRAINING_EPISODES and the
+    evaluation's index. ConfigError for a folder that is no run, has no evaluation at ``step`` or started with
+    code whose evaluations drew other starts (:func:`lnnmpc.train.provenance.check_current_starts`)."""
+    import json
+
+    from lnnmpc.train.provenance import check_current_starts
+
+    config = runfolder.read_config(run)["config"]
+    check_current_starts(run)
+    rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
+    steps = sorted({int(r["env_step"]) for r in rows})
+    if step not in steps:
+        raise ConfigError(f"{run!r} evaluated at {', '.join(map(str, steps)) or 'no step'}, not at {step}")
+    returns = {}
+    for r in rows:
+        if int(r["env_step"]) == step:
+            key = (int(r["seed"]), int(r["episode"]))
+            if key in returns:
+                raise ConfigError(f"{run!r}: eval.csv holds seed {key[0]} episode {key[1]} at {step} twice")
+            returns[key] = float(r["return"])
+    episodes_from = {c: json.dumps(config.get(c), sort_keys=True) for c in _SAME_TRAINING_EPISODES}
+    episodes_from["evaluation"] = str(steps.index(step))
+    return EpisodeReturns(path=run, returns=returns, episodes_from=episodes_from, env_step=step)
+
+
+def last_common_step(runs: list[str]) -> int:
+    """The last env step at which every run of ``runs`` evaluated (ConfigError where there is none)."""
+    common = None
+    for run in runs:
+        runfolder.read_config(run)  # ConfigError naming a folder that is no run
+        steps = {int(r["env_step"]) for r in runfolder.read_csv(os.path.join(run, "eval.csv"))}
+        common = steps if common is None else common & steps
+    if not common:
+        raise ConfigError(f"the runs share no evaluation step: {', '.join(map(repr, runs))}")
+    return max(common)
+
+
+def check_same_training_episodes(first: EpisodeReturns, other: EpisodeReturns) -> None:
+    """Raises ConfigError where run ``other``'s evaluation played other episodes than run ``first``'s."""
+    for c, value in first.episodes_from.items():
+        if other.episodes_from[c] != value:
+            what = _SAME_TRAINING_EPISODES.get(c, "evaluation number (0: the first)")
+            raise ConfigError(f"{other.path!r} played other episodes than {first.path!r} at {first.env_step}: "
+                              f"{what} {other.episodes_from[c]} against {value}")
 
 
 def shared_rows(csvs: list[EpisodeReturns]) -> list[tuple[int, int]]:
@@ -172,7 +237,11 @@ def plot_paired(csvs: list[EpisodeReturns], labels: list[str], path: str) -> str
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m lnnmpc.train.paired", description=__doc__.split("\n")[0])
-    p.add_argument("csvs", nargs="+", help="CSVs of `cli eval` with the same episodes; the first is the reference")
+    p.add_argument("csvs", nargs="+", help="CSVs of `cli eval` with the same episodes (with --runs: run folders); "
+                   "the first is the reference")
+    p.add_argument("--runs", action="store_true", help="compare run folders on their training-time evaluations")
+    p.add_argument("--step", type=int, default=None, help="with --runs: the env step whose evaluation to compare "
+                   "(default: the last that every run evaluated at)")
     p.add_argument("--labels", nargs="+", default=None, help="one label per CSV (default: the file names)")
     p.add_argument("--plot", default=None, metavar="PNG", help="also draw each CSV's returns against the first's")
     p.add_argument("--common", action="store_true", help="compare the (seed, episode) rows all CSVs hold (e.g. "
@@ -182,13 +251,21 @@ def main(argv: list[str] | None = None) -> int:
     def compare() -> str:
         if len(args.csvs) < 2:
             raise ConfigError(f"give at least two CSVs to compare, got {len(args.csvs)}")
-        labels = args.labels or [os.path.basename(c) for c in args.csvs]
+        labels = args.labels or [os.path.basename(os.path.normpath(c)) for c in args.csvs]
         if len(labels) != len(args.csvs):
             raise ConfigError(f"{len(labels)} labels for {len(args.csvs)} CSVs: give one label per CSV")
-        csvs = [read_episode_returns(c) for c in args.csvs]
-        for other in csvs[1:]:
-            check_same_episodes(csvs[0], other, args.common)
-        for csv in csvs:
+        if args.step is not None and not args.runs:
+            raise ConfigError("--step picks a training evaluation: give it with --runs")
+        if args.runs:
+            step = last_common_step(args.csvs) if args.step is None else args.step
+            csvs = [read_training_evaluation(run, step) for run in args.csvs]
+            for other in csvs[1:]:
+                check_same_training_episodes(csvs[0], other)
+        else:
+            csvs = [read_episode_returns(c) for c in args.csvs]
+            for other in csvs[1:]:
+                check_same_episodes(csvs[0], other, args.common)
+        for csv in [] if args.runs else csvs:
             if "eval_seed" not in csv.episodes_from:
                 sys.stderr.write(f"note: {csv.path!r} records no eval_seed (written before it was): taken to be the "
                                  "others'\n")

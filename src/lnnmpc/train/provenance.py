@@ -138,3 +138,36 @@ def code_line(entries: list[dict]) -> str:
     shown = ", ".join(f"{name} {versions[name]}" for name in ("jax", "mujoco-mjx") if versions.get(name))
     starts = f"; {len(entries)} starts (resumed)" if len(entries) > 1 else ""
     return code + (f"; {shown}" if shown else "") + starts
+
+
+# Since this commit (2026-11-29) the trainer's and `cli eval`'s MJX episodes take their keys as they are derived now
+# (episode i's from fold_in(key, i); :func:`lnnmpc.train.loop.evaluation_keys`): runs started before it played other
+# starts. A run's provenance names its code's commit (the time where git does not know the commit: a shallow clone).
+KEYS_SINCE_COMMIT, KEYS_SINCE_TIME = "45dda0c", "2026-11-29T17:23:29Z"
+
+
+def plays_current_starts(entry: dict) -> bool:
+    """Whether a provenance entry ran code whose evaluations draw their starts as today's code does: its commit
+    descends from KEYS_SINCE_COMMIT (or, where git cannot tell, it started after KEYS_SINCE_TIME)."""
+    commit = (entry.get("git") or {}).get("commit")
+    if commit:
+        root = os.path.join(_PACKAGE_ROOT, "..", "..")
+        done = subprocess.run(["git", "-C", root, "merge-base", "--is-ancestor", KEYS_SINCE_COMMIT, commit],
+                              capture_output=True)
+        if done.returncode in (0, 1):  # 128: a commit git does not know
+            return done.returncode == 0
+    return str(entry.get("time", "")) >= KEYS_SINCE_TIME
+
+
+def check_current_starts(run: str) -> None:
+    """ConfigError where ``run`` has no provenance or a start or resume of it ran code older than KEYS_SINCE_COMMIT
+    (its evaluations' starts cannot be recomputed, nor matched with another run's)."""
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.config import ConfigError
+
+    entries = runfolder.read_provenance(run)
+    old = [e for e in entries if not plays_current_starts(e)]
+    if not entries or old:
+        when = f"started at {old[0].get('time', '?')}" if old else "records no provenance"
+        raise ConfigError(f"{run!r} {when}: its evaluations drew their starts before {KEYS_SINCE_COMMIT} "
+                          f"({KEYS_SINCE_TIME[:10]}), so they cannot be recomputed")
