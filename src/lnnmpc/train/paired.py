@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import sys
 
@@ -121,8 +122,6 @@ def read_training_evaluation(run: str, step: int) -> EpisodeReturns:
     ``episodes_from`` naming what decides those episodes: the settings of _SAME_TRAINING_EPISODES and the
     evaluation's index. ConfigError for a folder that is no run, has no evaluation at ``step`` or started with
     code whose evaluations drew other starts (:func:`lnnmpc.train.provenance.check_current_starts`)."""
-    import json
-
     from lnnmpc.train.provenance import check_current_starts
 
     config = runfolder.read_config(run)["config"]
@@ -265,10 +264,10 @@ def main(argv: list[str] | None = None) -> int:
             csvs = [read_episode_returns(c) for c in args.csvs]
             for other in csvs[1:]:
                 check_same_episodes(csvs[0], other, args.common)
-        for csv in [] if args.runs else csvs:
-            if "eval_seed" not in csv.episodes_from:
-                sys.stderr.write(f"note: {csv.path!r} records no eval_seed (written before it was): taken to be the "
-                                 "others'\n")
+            for csv in csvs:
+                if "eval_seed" not in csv.episodes_from:
+                    sys.stderr.write(f"note: {csv.path!r} records no eval_seed (written before it was): taken to be "
+                                     "the others'\n")
         if not shared_rows(csvs):
             raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
         text = paired_table(paired_rows(csvs, labels))
