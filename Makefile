@@ -96,7 +96,7 @@ compare: $(STAMP)
 # make paired CSVS="a.csv b.csv ..." [LABELS="'a' 'b'"] [PLOT=paired.png] [COMMON=1]
 #   evaluations of several policies on the same episodes (make eval, one EVAL_SEED) compared episode by episode
 #   against the first: mean difference ± standard error, episodes more / less, correlation
-# make paired RUNS="runs/a runs/b ..." [STEP=200128]
+# make paired RUNS="runs/a runs/b ..." [STEP=200128|all]
 #   the same for runs' training-time evaluations (same task and master seed: the same episodes at each evaluation)
 paired: $(STAMP)
 	$(PY) -m lnnmpc.train.paired $(if $(RUNS),--runs $(RUNS),$(CSVS)) $(if $(STEP),--step $(STEP)) \

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import os
 
+import pytest
+
 from lnnmpc.train import runfolder
 from lnnmpc.train.paired import check_same_training_episodes, main, paired_rows, read_training_evaluation
 
@@ -102,6 +104,11 @@ def test_runs_are_paired_on_the_training_evaluation_they_share(tmp_path, capsys)
     assert "| a | 4 | 25.0 ± 11.2 |  |  |  |" in out and "| b | 4 | 27.5 ± 12.7 | +2.5 ± 1.3 | 3 / 1 | 0.99 |" in out
     assert main(["--runs", a, b + "/", "--step", "10", "--labels", "recipe", "lr"]) == 0
     assert "| lr | 4 | 2.5 ± 1.1 | +0.0 ± 0.4 | 1 / 1 | 0.80 |" in capsys.readouterr().out
+    assert main(["--runs", a, b, "--step", "all"]) == 0  # one table per shared step, in order (not 30: a lacks it)
+    sections = capsys.readouterr().out.split("env step ")[1:]
+    assert [x.split("\n")[0] for x in sections] == ["10", "20"]
+    assert "| b | 4 | 2.5 ± 1.1 | +0.0 ± 0.4 | 1 / 1 | 0.80 |" in sections[0]
+    assert "| b | 4 | 27.5 ± 12.7 | +2.5 ± 1.3 | 3 / 1 | 0.99 |" in sections[1]
 
 
 def test_runs_of_other_episodes_are_refused_naming_why(tmp_path, capsys):
@@ -121,6 +128,11 @@ def test_runs_of_other_episodes_are_refused_naming_why(tmp_path, capsys):
         assert reason in capsys.readouterr().err, other
     assert main(["--runs", a, a, "--step", "15"]) == 2 and "evaluated at 10, 20, not at 15" in capsys.readouterr().err
     assert main([a, a, "--step", "10"]) == 2 and "give it with --runs" in capsys.readouterr().err
+    assert main(["--runs", a, a, "--step", "all", "--plot", str(tmp_path / "p.png")]) == 2
+    assert "--plot draws one evaluation's episodes: give --step STEP, not all" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--runs", a, a, "--step", "last"])
+    assert "an env step or 'all', got 'last'" in capsys.readouterr().err
 
 
 def test_the_committed_constant_rate_run_pairs_with_the_recipe():

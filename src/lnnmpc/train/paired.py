@@ -26,8 +26,9 @@ compares run folders on their training-time evaluations instead (:func:`read_tra
 evaluation draws its episodes from its master seed and k alone (``lnnmpc.train.trainer.evaluation_key_chain``), so
 runs of one task with the same master seed, seed count, episode count and evaluation corruption, evaluated at the
 same step as their k-th evaluation, played the same episodes whatever else their settings (the rate, the Q heads,
-the action repeat). The step is ``--step`` or the last one every run evaluated at; runs that differ in any of
-those, or that started with code older than ``lnnmpc.train.provenance.KEYS_SINCE_COMMIT``, are refused naming why.
+the action repeat). The step is ``--step`` or the last one every run evaluated at (``--step all``: one table per
+step they share); runs that differ in any of those, or that started with code older than
+``lnnmpc.train.provenance.KEYS_SINCE_COMMIT``, are refused naming why.
 """
 
 from __future__ import annotations
@@ -142,8 +143,8 @@ def read_training_evaluation(run: str, step: int) -> EpisodeReturns:
     return EpisodeReturns(path=run, returns=returns, episodes_from=episodes_from, env_step=step)
 
 
-def last_common_step(runs: list[str]) -> int:
-    """The last env step at which every run of ``runs`` evaluated (ConfigError where there is none)."""
+def common_steps(runs: list[str]) -> list[int]:
+    """The env steps at which every run of ``runs`` evaluated, ascending (ConfigError where there is none)."""
     common = None
     for run in runs:
         runfolder.read_config(run)  # ConfigError naming a folder that is no run
@@ -151,7 +152,30 @@ def last_common_step(runs: list[str]) -> int:
         common = steps if common is None else common & steps
     if not common:
         raise ConfigError(f"the runs share no evaluation step: {', '.join(map(repr, runs))}")
-    return max(common)
+    return sorted(common)
+
+
+def training_evaluations(runs: list[str], step: int | str | None) -> list[list[EpisodeReturns]]:
+    """Per compared step, the runs' training-time evaluations there (checked to hold the same episodes): ``step``
+    an env step, None for the last that every run evaluated at, or "all" for each of those in turn."""
+    common = common_steps(runs)
+    steps = common if step == "all" else [common[-1] if step is None else step]
+    out = []
+    for chosen in steps:
+        evaluations = [read_training_evaluation(run, chosen) for run in runs]
+        for other in evaluations[1:]:
+            check_same_training_episodes(evaluations[0], other)
+        out.append(evaluations)
+    return out
+
+
+def _step(text: str) -> int | str:
+    if text == "all":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"an env step or 'all', got {text!r}") from None
 
 
 def check_same_training_episodes(first: EpisodeReturns, other: EpisodeReturns) -> None:
@@ -239,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("csvs", nargs="+", help="CSVs of `cli eval` with the same episodes (with --runs: run folders); "
                    "the first is the reference")
     p.add_argument("--runs", action="store_true", help="compare run folders on their training-time evaluations")
-    p.add_argument("--step", type=int, default=None, help="with --runs: the env step whose evaluation to compare "
-                   "(default: the last that every run evaluated at)")
+    p.add_argument("--step", type=_step, default=None, help="with --runs: the env step whose evaluation to compare "
+                   "(default: the last that every run evaluated at; all: one table per step they share)")
     p.add_argument("--labels", nargs="+", default=None, help="one label per CSV (default: the file names)")
     p.add_argument("--plot", default=None, metavar="PNG", help="also draw each CSV's returns against the first's")
     p.add_argument("--common", action="store_true", help="compare the (seed, episode) rows all CSVs hold (e.g. "
@@ -256,10 +280,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.step is not None and not args.runs:
             raise ConfigError("--step picks a training evaluation: give it with --runs")
         if args.runs:
-            step = last_common_step(args.csvs) if args.step is None else args.step
-            csvs = [read_training_evaluation(run, step) for run in args.csvs]
-            for other in csvs[1:]:
-                check_same_training_episodes(csvs[0], other)
+            sections = training_evaluations(args.csvs, args.step)
+            if args.plot and len(sections) > 1:
+                raise ConfigError("--plot draws one evaluation's episodes: give --step STEP, not all")
         else:
             csvs = [read_episode_returns(c) for c in args.csvs]
             for other in csvs[1:]:
@@ -268,11 +291,16 @@ def main(argv: list[str] | None = None) -> int:
                 if "eval_seed" not in csv.episodes_from:
                     sys.stderr.write(f"note: {csv.path!r} records no eval_seed (written before it was): taken to be "
                                      "the others'\n")
-        if not shared_rows(csvs):
-            raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
-        text = paired_table(paired_rows(csvs, labels))
+            sections = [csvs]
+        tables = []
+        for csvs in sections:
+            if not shared_rows(csvs):
+                raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
+            table = paired_table(paired_rows(csvs, labels))
+            tables.append(f"env step {csvs[0].env_step:,}\n\n{table}" if len(sections) > 1 else table)
+        text = "\n\n".join(tables)
         if args.plot:
-            text += f"\n\nwrote {plot_paired(csvs, labels, args.plot)}"
+            text += f"\n\nwrote {plot_paired(sections[0], labels, args.plot)}"
         return text
 
     return command_status(compare)
