@@ -109,6 +109,10 @@ def test_runs_are_paired_on_the_training_evaluation_they_share(tmp_path, capsys)
     assert [x.split("\n")[0] for x in sections] == ["10", "20"]
     assert "| b | 4 | 2.5 ± 1.1 | +0.0 ± 0.4 | 1 / 1 | 0.80 |" in sections[0]
     assert "| b | 4 | 27.5 ± 12.7 | +2.5 ± 1.3 | 3 / 1 | 0.99 |" in sections[1]
+    one = _run(tmp_path / "one", {20: [10, 20, 30, 40]}, seeds=2)
+    late = _run(tmp_path / "late", {20: [12, 19, 35, 44]}, seeds=2)
+    assert main(["--runs", one, late, "--step", "all"]) == 0  # a single shared step still names itself
+    assert capsys.readouterr().out.startswith("env step 20\n\n| policy |")
 
 
 def test_runs_of_other_episodes_are_refused_naming_why(tmp_path, capsys):

@@ -297,7 +297,7 @@ def main(argv: list[str] | None = None) -> int:
             if not shared_rows(csvs):
                 raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
             table = paired_table(paired_rows(csvs, labels))
-            tables.append(f"env step {csvs[0].env_step:,}\n\n{table}" if len(sections) > 1 else table)
+            tables.append(f"env step {csvs[0].env_step:,}\n\n{table}" if args.step == "all" else table)
         text = "\n\n".join(tables)
         if args.plot:
             text += f"\n\nwrote {plot_paired(sections[0], labels, args.plot)}"
