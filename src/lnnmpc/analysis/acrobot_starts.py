@@ -38,7 +38,6 @@ from typing import NamedTuple
 import numpy as np
 
 from lnnmpc.train.config import ConfigError
-from lnnmpc.train.provenance import check_current_starts
 
 TRAINING = "training evaluation"  # the ``source`` of a run's own evaluation episodes (then its env step)
 
@@ -142,24 +141,17 @@ def trainer_episodes(run: str, config, env, step: int | None) -> tuple[int, list
     """(env step, episode rows) of the training-time evaluation at ``step`` (None: its last) of ``run`` (saved
     configuration ``config``): every seed's episodes, each row with its seed and the start's angles (each seed's
     policy is fitted apart)."""
-    from lnnmpc.train import runfolder
+    from lnnmpc.train.paired import evaluation_at, read_training_evaluations
 
-    check_current_starts(run)
-    rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
-    steps = sorted({int(r["env_step"]) for r in rows})
-    if not steps:
+    evaluations = read_training_evaluations(run)
+    if not evaluations:
         raise ConfigError(f"{run!r}: eval.csv holds no evaluation")
-    chosen = steps[-1] if step is None else step
-    if chosen not in steps:
-        raise ConfigError(f"{run!r} evaluated at {', '.join(map(str, steps))}, not at {chosen}")
-    qpos = start_qpos(env, trainer_evaluation_key(config.seed, steps.index(chosen)), config.seeds,
+    chosen = evaluation_at(run, evaluations, max(evaluations) if step is None else step)
+    qpos = start_qpos(env, trainer_evaluation_key(config.seed, int(chosen.episodes_from["evaluation"])), config.seeds,
                       config.eval_episodes)
-    out = [{"run": run, "source": f"{TRAINING} {chosen}", "seed": int(r["seed"]),
-            "episode": int(r["episode"]), "qpos": qpos[int(r["seed"]), int(r["episode"])],
-            "return": float(r["return"])} for r in rows if int(r["env_step"]) == chosen]
-    if len({(r["seed"], r["episode"]) for r in out}) != len(out):
-        raise ConfigError(f"{run!r}: eval.csv holds an episode of the evaluation at {chosen} twice")
-    return chosen, out
+    return chosen.env_step, [{"run": run, "source": f"{TRAINING} {chosen.env_step}", "seed": seed, "episode": episode,
+                              "qpos": qpos[seed, episode], "return": value}
+                             for (seed, episode), value in chosen.returns.items()]
 
 
 def dm_control_start_qpos(env, seed: int, episodes: int) -> np.ndarray:

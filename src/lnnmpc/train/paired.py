@@ -118,54 +118,55 @@ _SAME_TRAINING_EPISODES = {"task": "task", "seed": "master seed (--seed)", "seed
                            "physics": "physics profile"}
 
 
-def read_training_evaluation(run: str, step: int) -> EpisodeReturns:
-    """Run folder ``run``'s training-time evaluation at env step ``step`` as :class:`EpisodeReturns`, its
-    ``episodes_from`` naming what decides those episodes: the settings of _SAME_TRAINING_EPISODES and the
-    evaluation's index. ConfigError for a folder that is no run, has no evaluation at ``step`` or started with
-    code whose evaluations drew other starts (:func:`lnnmpc.train.provenance.check_current_starts`)."""
+def read_training_evaluations(run: str) -> dict[int, EpisodeReturns]:
+    """Every training-time evaluation of run folder ``run`` by env step (ascending), each as
+    :class:`EpisodeReturns` whose ``episodes_from`` names what decides its episodes: the settings of
+    _SAME_TRAINING_EPISODES and the evaluation's index. Reads the folder once. ConfigError for a folder that is no
+    run, an eval.csv holding an episode of one evaluation twice, or a run started with code whose evaluations drew
+    other starts (:func:`lnnmpc.train.provenance.check_current_starts`)."""
     from lnnmpc.train.provenance import check_current_starts
 
     config = runfolder.read_config(run)["config"]
     check_current_starts(run)
-    rows = runfolder.read_csv(os.path.join(run, "eval.csv"))
-    steps = sorted({int(r["env_step"]) for r in rows})
-    if step not in steps:
-        raise ConfigError(f"{run!r} evaluated at {', '.join(map(str, steps)) or 'no step'}, not at {step}")
-    returns = {}
-    for r in rows:
-        if int(r["env_step"]) == step:
-            key = (int(r["seed"]), int(r["episode"]))
-            if key in returns:
-                raise ConfigError(f"{run!r}: eval.csv holds seed {key[0]} episode {key[1]} at {step} twice")
-            returns[key] = float(r["return"])
-    episodes_from = {c: json.dumps(config.get(c), sort_keys=True) for c in _SAME_TRAINING_EPISODES}
-    episodes_from["evaluation"] = str(steps.index(step))
-    return EpisodeReturns(path=run, returns=returns, episodes_from=episodes_from, env_step=step)
+    by_step: dict[int, dict[tuple[int, int], float]] = {}
+    for r in runfolder.read_csv(os.path.join(run, "eval.csv")):
+        step, key = int(r["env_step"]), (int(r["seed"]), int(r["episode"]))
+        returns = by_step.setdefault(step, {})
+        if key in returns:
+            raise ConfigError(f"{run!r}: eval.csv holds an episode of the evaluation at {step} twice")
+        returns[key] = float(r["return"])
+    settings = {c: json.dumps(config.get(c), sort_keys=True) for c in _SAME_TRAINING_EPISODES}
+    return {step: EpisodeReturns(path=run, returns=by_step[step], episodes_from={**settings, "evaluation": str(index)},
+                                 env_step=step) for index, step in enumerate(sorted(by_step))}
 
 
-def common_steps(runs: list[str]) -> list[int]:
-    """The env steps at which every run of ``runs`` evaluated, ascending (ConfigError where there is none)."""
-    common = None
-    for run in runs:
-        runfolder.read_config(run)  # ConfigError naming a folder that is no run
-        steps = {int(r["env_step"]) for r in runfolder.read_csv(os.path.join(run, "eval.csv"))}
-        common = steps if common is None else common & steps
-    if not common:
-        raise ConfigError(f"the runs share no evaluation step: {', '.join(map(repr, runs))}")
-    return sorted(common)
+def evaluation_at(run: str, evaluations: dict[int, EpisodeReturns], step: int) -> EpisodeReturns:
+    """Run ``run``'s evaluation at ``step`` out of :func:`read_training_evaluations`' ``evaluations`` (ConfigError
+    naming the steps it evaluated at where ``step`` is none of them)."""
+    if step not in evaluations:
+        raise ConfigError(f"{run!r} evaluated at {', '.join(map(str, evaluations)) or 'no step'}, not at {step}")
+    return evaluations[step]
+
+
+def read_training_evaluation(run: str, step: int) -> EpisodeReturns:
+    """Run folder ``run``'s training-time evaluation at env step ``step`` (:func:`read_training_evaluations`)."""
+    return evaluation_at(run, read_training_evaluations(run), step)
 
 
 def training_evaluations(runs: list[str], step: int | str | None) -> list[list[EpisodeReturns]]:
     """Per compared step, the runs' training-time evaluations there (checked to hold the same episodes): ``step``
-    an env step, None for the last that every run evaluated at, or "all" for each of those in turn."""
-    common = common_steps(runs)
-    steps = common if step == "all" else [common[-1] if step is None else step]
+    an env step, None for the last that every run evaluated at, or "all" for each of those in turn. ConfigError
+    where the runs share no evaluation step."""
+    evaluations = [read_training_evaluations(run) for run in runs]
+    common = sorted(set.intersection(*(set(e) for e in evaluations)))
+    if not common:
+        raise ConfigError(f"the runs share no evaluation step: {', '.join(map(repr, runs))}")
     out = []
-    for chosen in steps:
-        evaluations = [read_training_evaluation(run, chosen) for run in runs]
-        for other in evaluations[1:]:
-            check_same_training_episodes(evaluations[0], other)
-        out.append(evaluations)
+    for chosen in common if step == "all" else [common[-1] if step is None else step]:
+        at_step = [evaluation_at(run, e, chosen) for run, e in zip(runs, evaluations, strict=True)]
+        for other in at_step[1:]:
+            check_same_training_episodes(at_step[0], other)
+        out.append(at_step)
     return out
 
 
