@@ -31,7 +31,8 @@ def test_paired_differences_against_a_hand_computation(tmp_path, capsys):
     b = _csv(tmp_path / "b.csv", [12, 19, 35, 44], seeds=2, reverse=True)
     plot = tmp_path / "fig" / "paired.png"
     assert main([a, b, "--labels", "A", "B", "--plot", str(plot)]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "not the spread between training launches" in err  # the standard error counts the starts alone
     assert "| A | 4 | 25.0 ± 11.2 |  |  |  |" in out
     assert "| B | 4 | 27.5 ± 12.7 | +2.5 ± 1.3 | 3 / 1 | 0.99 |" in out
     assert "minus A (± standard error)" in out and os.path.getsize(plot) > 10_000

@@ -29,6 +29,11 @@ same step as their k-th evaluation, played the same episodes whatever else their
 the action repeat). The step is ``--step`` or the last one every run evaluated at (``--step all``: one table per
 step they share); runs that differ in any of those, or that started with code older than
 ``lnnmpc.train.provenance.KEYS_SINCE_COMMIT``, are refused naming why.
+
+The standard error counts the episodes only: it says how surely these trained policies differ on these starts, not
+how surely their training settings do. Two launches of one command can part by more (RESULTS.md [91]: the acrobot
+recipe launched twice on master seed 1, -31.3 ± 13.0 at 200,128 and -80.2 ± 32.0 at 161,088), so a setting is
+judged over master seeds or launches, not on one pair of runs; every comparison prints a note saying so.
 """
 
 from __future__ import annotations
@@ -212,6 +217,10 @@ def paired_rows(csvs: list[EpisodeReturns], labels: list[str]) -> list[dict]:
     return rows
 
 
+LAUNCH_NOTE = ("note: ± counts the episodes' starts only, not the spread between training launches: two launches "
+               "of one command can differ by more (RESULTS.md [91])\n")
+
+
 def paired_table(rows: list[dict]) -> str:
     """Markdown table of :func:`paired_rows`."""
     first = rows[0]["label"]
@@ -299,6 +308,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
             table = paired_table(paired_rows(csvs, labels))
             tables.append(f"env step {csvs[0].env_step:,}\n\n{table}" if args.step == "all" else table)
+        sys.stderr.write(LAUNCH_NOTE)
         text = "\n\n".join(tables)
         if args.plot:
             text += f"\n\nwrote {plot_paired(sections[0], labels, args.plot)}"
