@@ -1,7 +1,7 @@
 """Analysis scripts of ``experiments/scripts/``: ``episode_shares.py`` (the split of evaluation returns into the
 initial state's share, the policy's and the rest, against sums of squares computed by hand in float64) and
 ``acrobot_hanging_starts.py``'s initial states, ``acrobot_oracle.py``'s mechanical energy (against MuJoCo's own,
-C, float64) and ``acrobot_ceiling_figure.py``'s join of per-start returns."""
+C, float64), ``acrobot_ceiling_figure.py``'s join of per-start returns and ``program_hashes.py``'s lowered programs."""
 
 import csv
 import importlib.util
@@ -146,3 +146,30 @@ def test_ceiling_figure_joins_sources_by_episode_with_the_starts_energy(tmp_path
     assert os.path.getsize(f"{out}.png") > 1000 and "P: 485.0" in capsys.readouterr().out
     assert script.main(["--planner", "no-label.csv", "--out", out]) == 2
     assert "LABEL=CSV" in capsys.readouterr().err
+
+
+def test_program_hashes_tell_runs_apart_by_their_programs(tmp_path, capsys):
+    """Lowered from config.json alone: another learning rate changes the training chunk and the update burst but
+    not the seed phase or the evaluation (which never read it); the same settings under another master seed lower
+    to the same text (the seed is a runtime key); a folder without config.json is refused."""
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.config import TrainConfig
+
+    script = _script("program_hashes")
+    base = dict(task="cartpole-swingup", agent="tdmpc2", small=True, steps=400, seed_steps=200, eval_every=200,
+                eval_episodes=2, compile_cache="")
+    runs = []
+    for name, extra in (("a", {}), ("b", {"seed": 3}), ("c", {"overrides": {"lr": 1e-3}})):
+        (tmp_path / name).mkdir()
+        runfolder.write_config(str(tmp_path / name), TrainConfig(**base, **extra, out=str(tmp_path / name)), {})
+        runs.append(str(tmp_path / name))
+    dump = tmp_path / "dump"
+    assert script.main(runs + ["--dump", str(dump)]) == 0
+    rows = capsys.readouterr().out.strip().splitlines()
+    assert rows[-1] == "| all runs | differ | same | differ | same |"
+    text = {(run, p): (dump / f"{run}-{p}.txt").read_text() for run in "abc" for p in script.PROGRAMS}
+    assert all("func.func public @main" in t for t in text.values())
+    assert text["a", "evaluate"] == text["c", "evaluate"] and text["a", "train_chunk"] != text["c", "train_chunk"]
+    assert rows[2] == "| a | " + " | ".join(script.digest(text["a", p]) for p in script.PROGRAMS) + " |"
+    assert rows[3] == rows[2].replace("| a |", "| b |")  # another master seed: the same programs
+    assert script.main([str(tmp_path / "none")]) == 2 and "is not a run folder" in capsys.readouterr().err
