@@ -126,10 +126,11 @@ def test_adjusted_mean_against_least_squares_in_float64():
         starts.adjusted_mean(np.zeros(3), np.zeros(4), 0.0)
 
 
-def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp_path, capsys):
+def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp_path, capsys, monkeypatch):
     """The three committed runs' final training evaluations (GPU) and their policies' 20-episode MJX CSVs: every
     policy's logged returns correlate with the recomputed starts' energy (r > 0.8; starts from wrong keys would
-    not), the CSV holds each episode once, and bad input is refused with exit status 2."""
+    not), the CSV holds each episode once, bad input is refused with exit status 2, and without --out nothing is
+    written."""
     extra = [f"{run}={RESULTS}/analysis/mjx-20ep-ar4-seed{seed}-200128.csv" for seed, run in enumerate(RUNS, 1)]
     out = str(tmp_path / "ar4")
     assert starts.main([*RUNS, "--with", *extra, "--population", "2000", "--out", out]) == 0
@@ -163,6 +164,11 @@ def test_command_on_gpu_runs_finds_their_returns_following_the_starts_energy(tmp
     assert "| acrobot-recipe-ar4-seed3 | 10 | - |" in capsys.readouterr().out  # no training evaluation fitted
     with open(f"{out}.csv", newline="") as f:
         assert {r["source"] for r in csv.DictReader(f)} == {os.path.basename(plan5)}
+    empty = tmp_path / "cwd"
+    empty.mkdir()
+    monkeypatch.chdir(empty)  # without --out the table is printed and nothing written
+    assert starts.main([RUNS[2], "--with", f"{RUNS[2]}={plan5}", "--without-training", "--population", "2000"]) == 0
+    assert "| acrobot-recipe-ar4-seed3 | 10 | - |" in capsys.readouterr().out and os.listdir(empty) == []
     noisy = tmp_path / "noisy.csv"
     noisy.write_text(open(extra[0].split("=", 1)[1]).read().replace(",clean,", ",noise0.1,"))
     assert "only clean evaluations are supported (backend mjx or dm_control, obs clean), got backend 'mjx', obs " \

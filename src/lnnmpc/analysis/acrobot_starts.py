@@ -21,9 +21,10 @@ of starts' luck. Runs started (or resumed) with code older than `provenance.KEYS
 their starts otherwise, and CSVs without an ``eval_seed`` column are refused
 (:func:`lnnmpc.train.provenance.check_current_starts`).
 
-Writes ``PREFIX.csv`` (one row per episode: run, source, seed, episode, start angles, energy, return) and
-``PREFIX.png`` (returns against the start's energy, one colour per policy, the fitted lines and the population's
-mean energy), and prints one markdown row per policy and the mean over the policies.
+Prints one markdown row per policy and the mean over the policies; with ``--out PREFIX`` it also writes
+``PREFIX.csv`` (one row per episode: run, source, seed, episode, start angles, energy, return) and ``PREFIX.png``
+(returns against the start's energy, one colour per policy, the fitted lines and the population's mean energy).
+Without ``--out`` it writes nothing.
 """
 
 from __future__ import annotations
@@ -294,12 +295,13 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--without-training", action="store_true",
                    help="fit the --with CSVs' episodes alone (every run needs one), not the training evaluation's")
     p.add_argument("--population", type=int, default=100_000, help="starts drawn for the mean energy (default 1e5)")
-    p.add_argument("--out", default="acrobot_starts", help="PREFIX of PREFIX.csv and PREFIX.png")
+    p.add_argument("--out", default=None, help="also write PREFIX.csv and PREFIX.png (default: print only)")
     return p.parse_args(argv)
 
 
 def run_analysis(args: argparse.Namespace) -> str:
-    """Reads, fits, writes and returns the printed table (ConfigError for a bad run, CSV or option)."""
+    """Reads, fits, writes (with ``--out``) and returns the printed table (ConfigError for a bad run, CSV or
+    option)."""
     from lnnmpc.train import runfolder
     from lnnmpc.train.setup import config_env
 
@@ -330,11 +332,12 @@ def run_analysis(args: argparse.Namespace) -> str:
     population = population_energy(env, args.population)
     population_mean = float(population.mean())
     fits = policy_fits(rows, population_mean)
-    kept = ("run", "source", "seed", "episode", "energy", "return")
-    runfolder.write_csv(f"{args.out}.csv", [*kept[:4], "shoulder", "elbow", *kept[4:]],
-                        [{**{k: r[k] for k in kept}, "shoulder": float(r["qpos"][0]), "elbow": float(r["qpos"][1])}
-                         for r in rows])
-    plot(f"{args.out}.png", fits, population_mean)
+    if args.out:
+        kept = ("run", "source", "seed", "episode", "energy", "return")
+        runfolder.write_csv(f"{args.out}.csv", [*kept[:4], "shoulder", "elbow", *kept[4:]],
+                            [{**{k: r[k] for k in kept}, "shoulder": float(r["qpos"][0]),
+                              "elbow": float(r["qpos"][1])} for r in rows])
+        plot(f"{args.out}.png", fits, population_mean)
     return markdown(fits, population)
 
 
