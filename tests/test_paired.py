@@ -8,7 +8,13 @@ import os
 import pytest
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.paired import check_same_training_episodes, main, paired_rows, read_training_evaluation
+from lnnmpc.train.paired import (
+    check_same_training_episodes,
+    evaluation_at,
+    main,
+    paired_rows,
+    read_training_evaluations,
+)
 
 FIELDS = ["env_step", "seed", "episode", "return", "backend", "obs", "actor", "planner", "eval_seed"]
 
@@ -145,7 +151,8 @@ def test_the_committed_constant_rate_run_pairs_with_the_recipe():
     recipe = "experiments/results/cfc-acrobot-recipe-ar4-ar8-h100-200k/acrobot-recipe-ar4-seed1"
     constant = "experiments/results/cfc-acrobot-recipe-constlr-h100-200k/acrobot-recipe-constlr-seed1"
     root = os.path.join(os.path.dirname(__file__), "..")
-    first, other = (read_training_evaluation(os.path.join(root, r), 161_088) for r in (recipe, constant))
+    runs = [os.path.join(root, r) for r in (recipe, constant)]
+    first, other = (evaluation_at(run, read_training_evaluations(run), 161_088) for run in runs)
     check_same_training_episodes(first, other)
     row = paired_rows([first, other], ["recipe", "constant"])[1]
     assert (round(row["diff"], 1), round(row["se"], 1), row["wins"], row["losses"]) == (7.0, 44.6, 5, 5)

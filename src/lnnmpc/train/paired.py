@@ -22,7 +22,7 @@ episode amplifies that, so one policy's two evaluations of an episode may part).
 
     python -m lnnmpc.train.paired --runs runs/a runs/b [--step 200128]
 
-compares run folders on their training-time evaluations instead (:func:`read_training_evaluation`): a run's k-th
+compares run folders on their training-time evaluations instead (:func:`read_training_evaluations`): a run's k-th
 evaluation draws its episodes from its master seed and k alone (``lnnmpc.train.trainer.evaluation_key_chain``), so
 runs of one task with the same master seed, seed count, episode count and evaluation corruption, evaluated at the
 same step as their k-th evaluation, played the same episodes whatever else their settings (the rate, the Q heads,
@@ -151,11 +151,6 @@ def evaluation_at(run: str, evaluations: dict[int, EpisodeReturns], step: int) -
     if step not in evaluations:
         raise ConfigError(f"{run!r} evaluated at {', '.join(map(str, evaluations)) or 'no step'}, not at {step}")
     return evaluations[step]
-
-
-def read_training_evaluation(run: str, step: int) -> EpisodeReturns:
-    """Run folder ``run``'s training-time evaluation at env step ``step`` (:func:`read_training_evaluations`)."""
-    return evaluation_at(run, read_training_evaluations(run), step)
 
 
 def training_evaluations(runs: list[str], step: int | str | None) -> list[list[EpisodeReturns]]:
