@@ -211,6 +211,43 @@ def test_device_batch_relaunch_waits_for_the_earlier_process_of_its_job(tmp_path
     assert "earlier launches: 590.5 s" in relaunched.stdout
 
 
+def test_device_batch_relaunch_does_not_wait_for_a_job_killed_from_outside(tmp_path):
+    """A job whose launch was killed from outside (its wrapper process gone, so no NAME.rc was written) counts as
+    ended: its NAME.rc becomes "gone", the report says so, and a relaunch neither waits RELAUNCH_WAIT seconds for
+    it nor needs FORCE."""
+    import signal
+    import subprocess
+    import time
+
+    body = 'echo launched; [ -f first-done ] || { touch first-done; sleep 60; }'  # the first launch hangs
+    env = _fake_gpu_machine(tmp_path, 1, body, RELAUNCH_WAIT="40")
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("cut  --task cartpole-balance\n")
+    batch = tmp_path / "runs" / "batch"
+    start = lambda: subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "90", "0"], capture_output=True,
+                                   text=True, timeout=60, env=env, cwd=tmp_path)
+    assert start().returncode == 0
+    deadline = time.monotonic() + 20
+    while not ((batch / "cut.pid").exists() and (tmp_path / "first-done").exists()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    os.killpg(int((batch / "cut.pid").read_text()), signal.SIGKILL)  # the wrapper and its job, as a `pkill` would
+    report = subprocess.run(["bash", DEVICE_BATCH, "wait", "0"], capture_output=True, text=True, timeout=60, env=env,
+                            cwd=tmp_path)
+    assert "ended: its process is gone without an exit status" in report.stdout, report.stdout
+    assert "running: SIGTERM" not in report.stdout and (batch / "cut.rc").read_text().strip() == "gone"
+    began = time.monotonic()
+    relaunched = start()
+    assert relaunched.returncode == 0, relaunched.stderr
+    assert time.monotonic() - began < 20  # not RELAUNCH_WAIT's 40 s
+    assert "still runs" not in relaunched.stderr and "ended: its process is gone" not in relaunched.stdout
+    deadline = time.monotonic() + 20
+    while not (batch / "cut.rc").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (batch / "cut.rc").read_text().strip() == "0"  # the relaunch's own exit status
+    assert (batch / "cut.log").read_text() == "launched\nlaunched\n"
+    assert (batch / "commands.txt").read_text().count("cut (GPU 0)") == 2
+
+
 def test_device_batch_does_not_relaunch_a_run_that_reached_its_steps(tmp_path):
     """A training job whose earlier launch of the same line exited 0 is reported and not launched again (its run
     would only resume and exit), and the GPU's memory goes to the jobs that do launch; a job that was cut (exit

@@ -8,7 +8,8 @@
 #                                               wait included) or when all have ended; refused
 #                                               while jobs of an earlier start still run (FORCE=1 overrides);
 #                                               a job of JOBS launched before (a run cut by its timeout, to be
-#                                               resumed) first waits for its earlier process to end; a training
+#                                               resumed) first waits for its earlier process to end (a process
+#                                               killed from outside counts as ended); a training
 #                                               job whose earlier launch of the same line exited 0 (its run
 #                                               reached its steps) is not launched again (RERUN=1 relaunches it)
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
@@ -112,8 +113,21 @@ batch_jobs() {
 # `start` in the same hold (another jobs file once the first has ended) adds its runs beside the first's.
 still_running() {
     batch_jobs | while read -r name; do
-        [ -f "$BATCH/$name.rc" ] || printf '%s ' "$name"
+        settle_gone "$name" || printf '%s ' "$name"
     done
+}
+
+# Exit 0 when job NAME has ended: its NAME.rc is there, or its launch's wrapper process (NAME.pid) is gone without
+# writing one (killed from outside: a `pkill`, the kernel's OOM killer), in which case NAME.rc gets "gone", so that
+# neither a relaunch nor a second start waits for a process that no longer exists.
+settle_gone() {  # NAME
+    local pid
+    [ -f "$BATCH/$1.rc" ] && return 0
+    pid=$(cat "$BATCH/$1.pid" 2>/dev/null) && [ -n "$pid" ] || return 1
+    if kill -0 "$pid" 2>/dev/null; then  # alive, unless a zombie that nothing reaps
+        [ "$(ps -o stat= -p "$pid" 2>/dev/null | tr -d ' ' | cut -c1)" = Z ] || return 1
+    fi
+    [ -f "$BATCH/$1.rc" ] || echo gone >"$BATCH/$1.rc"
 }
 
 # Exit 0 when the training job NAME with trainer arguments ARGS need not be launched again: its last launch on this
@@ -135,7 +149,9 @@ print_report() {
         printf '%-34s %s\n' "$(basename "$log" .log)" "$(tr '\r' '\n' <"$log" | grep '^\[' | tail -1 | cut -c1-130)"
         tr '\r' '\n' <"$log" | grep -v -E '^\s*$|^\[' | tail -1 | cut -c1-150
         local ended=${log%.log}
+        settle_gone "$(basename "$ended")" || true
         [ -f "$ended.seconds" ] && echo "ended (exit $(cat "$ended.rc" 2>/dev/null)) $(cat "$ended.seconds") s after its launch"
+        [ "$(cat "$ended.rc" 2>/dev/null)" = gone ] && echo "ended: its process is gone without an exit status (killed from outside)"
         [ ! -f "$ended.rc" ] && [ -f "$ended.deadline" ] \
             && echo "running: SIGTERM in $(($(cat "$ended.deadline") - $(date +%s))) s unless extended (device_batch.sh extend)"
         [ -f "$ended.earlier-seconds" ] && echo "earlier launches: $(paste -sd+ "$ended.earlier-seconds") s"
@@ -222,7 +238,7 @@ start)
     for name in $(job_lines "$jobs" | awk '{print $1}' | sed 's/@.*//'); do
         batch_jobs | grep -qxF "$name" || continue
         waited=0
-        until [ -f "$BATCH/$name.rc" ]; do
+        until settle_gone "$name"; do
             if [ "$waited" -ge "${RELAUNCH_WAIT:-300}" ]; then
                 echo "$name: its earlier launch still runs after ${RELAUNCH_WAIT:-300} s (no $BATCH/$name.rc):" \
                     "not relaunched" >&2
@@ -276,10 +292,10 @@ start)
         # the job's end (NAME.rc, for `after`) and its wall seconds from launch to exit (NAME.seconds: a speed
         # bar's "including compilation", the process's start and exit included)
         took="echo \"\$(date +%s.%N) \$begun\" | awk '{printf \"%.1f\\n\", \$1 - \$2}' >$BATCH/$name.seconds"
-        command="begun=\$(date +%s.%N); $command; rc=\$?; $took; echo \$rc >$BATCH/$name.rc"
+        command="echo \$\$ >$BATCH/$name.pid; begun=\$(date +%s.%N); $command; rc=\$?; $took; echo \$rc >$BATCH/$name.rc"
         if [ -f "$BATCH/$name.rc" ]; then  # relaunched: the earlier launches' wall seconds kept, its log appended
             cat "$BATCH/$name.seconds" >>"$BATCH/$name.earlier-seconds" 2>/dev/null
-            rm -f "$BATCH/$name.rc" "$BATCH/$name.seconds"
+            rm -f "$BATCH/$name.rc" "$BATCH/$name.seconds" "$BATCH/$name.pid"
         fi
         echo $(($(date +%s) + seconds)) >"$BATCH/$name.deadline"  # the SIGTERM limit, which `extend` moves
         visible=$gpu
