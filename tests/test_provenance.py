@@ -101,6 +101,10 @@ def test_provenance_entry_records_the_installed_versions():
     assert entry["argv"] == ["prog", "--flag"] and entry["command"] == "prog --flag"
     assert entry["versions"]["jax"] == metadata.version("jax") and entry["cwd"] == os.getcwd()
     assert set(entry["git"]) == {"commit", "dirty"}
+    import jax
+
+    assert entry["platform"]["backend"] == jax.devices()[0].platform  # "cpu" here, "gpu" on the device
+    assert entry["platform"]["platform_version"] == str(jax.devices()[0].client.platform_version)
     provenance.mark_startup("checked")  # a start-up step's end, in seconds since the process started
     later = provenance.provenance_entry(["prog"])["startup"]
     assert 0 < later["checked"] <= provenance.process_seconds() + 0.01 and "checked" not in entry["startup"]
@@ -119,3 +123,19 @@ def test_process_seconds_counts_from_the_process_start(tmp_path):
     age, numpy_import = (float(x) for x in out.split())
     assert numpy_import - 0.011 <= age <= lived + 0.011  # /proc's clock ticks: 10 ms
     assert provenance.process_seconds() > 0  # this test process, started before the test
+
+
+def test_device_platform_reads_the_nvidia_driver_and_summary_names_it(tmp_path):
+    line = ("NVRM version: NVIDIA UNIX x86_64 Kernel Module  580.159.04  Thu Oct  9 19:00:00 UTC 2025\n"
+            "GCC version:  gcc version 12.3.0 (Ubuntu 12.3.0-1ubuntu1~22.04)\n")
+    assert provenance.nvidia_driver_version(line) == "580.159.04"
+    assert provenance.nvidia_driver_version("NVRM version: NVIDIA UNIX Open Kernel Module for x86_64  570.86.15  "
+                                            "Release Build") == "570.86.15"
+    assert provenance.nvidia_driver_version("") is None
+    proc = tmp_path / "version"
+    proc.write_text(line)
+    assert provenance.device_platform(str(proc))["driver"] == "580.159.04"
+    assert provenance.device_platform(str(tmp_path / "missing"))["driver"] is None  # no NVIDIA driver: a CPU
+    assert provenance.driver_note([{"platform": {"driver": "1.2"}}, {"platform": {"driver": "580.159.04"}}]) \
+        == " (driver 580.159.04)"  # the newest start's
+    assert provenance.driver_note([{"git": {}}]) == "" and provenance.driver_note([]) == ""

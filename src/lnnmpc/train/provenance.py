@@ -6,6 +6,7 @@ was stopped and resumed on another machine says so:
     {"time": "2026-11-27T13:23:40Z", "command": "python -m lnnmpc.train.cli train --task walker-run ...",
      "argv": [...], "cwd": "/work/main", "host": "gpu-7", "python": "3.12.3",
      "git": {"commit": "827c1e3...", "dirty": false}, "versions": {"jax": "0.11.2", ...},
+     "platform": {"backend": "gpu", "platform_version": "...", "driver": "580.159.04"},
      "startup": {"imports": 4.1, "devices": 9.8, "built": 12.0, "validated": 14.2}}
 
 ``startup`` gives the seconds since the process started at which each start-up step ended (:func:`mark_startup`;
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import os
 import platform
+import re
 import shlex
 import subprocess
 import sys
@@ -117,12 +119,43 @@ def command_line(argv: list[str]) -> str:
     return shlex.join(head + list(argv[1:]))
 
 
+def nvidia_driver_version(text: str) -> str | None:
+    """The driver version in the text of ``/proc/driver/nvidia/version`` (``NVRM version: NVIDIA UNIX x86_64
+    Kernel Module  580.159.04  ...`` gives ``"580.159.04"``), None where it names none."""
+    match = re.search(r"Kernel Module\s+(?:for \S+\s+)?(\d+(?:\.\d+)+)", text)
+    return match.group(1) if match else None
+
+
+def device_platform(proc_version: str = "/proc/driver/nvidia/version") -> dict[str, str | None]:
+    """The platform this process computes on, as JAX's persistent compile cache keys it (the backend and its
+    ``platform_version``, e.g. the CUDA and cuDNN versions of the GPU plugin; a cache written under another one
+    misses), and the NVIDIA kernel driver (None without one): ``{"backend": "gpu", "platform_version": "...",
+    "driver": "580.159.04"}``."""
+    import jax
+
+    device = jax.devices()[0]
+    try:
+        with open(proc_version) as f:
+            driver = nvidia_driver_version(f.read())
+    except OSError:
+        driver = None
+    return {"backend": device.platform, "platform_version": str(device.client.platform_version), "driver": driver}
+
+
 def provenance_entry(argv: list[str] | None = None) -> dict:
     """One entry of the ``"provenance"`` list for a start (or resume) now, by ``argv`` (default ``sys.argv``)."""
     argv = list(sys.argv if argv is None else argv)
     return {"time": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "command": command_line(argv),
             "argv": argv, "cwd": os.getcwd(), "host": platform.node(), "python": platform.python_version(),
-            "git": git_state(), "versions": software_versions(), "startup": dict(_STARTUP_MARKS)}
+            "git": git_state(), "versions": software_versions(), "platform": device_platform(),
+            "startup": dict(_STARTUP_MARKS)}
+
+
+def driver_note(entries: list[dict]) -> str:
+    """`` (driver 580.159.04)`` for summary.md's devices row where the newest start recorded an NVIDIA driver,
+    else empty."""
+    driver = ((entries[-1].get("platform") or {}).get("driver")) if entries else None
+    return f" (driver {driver})" if driver else ""
 
 
 def code_line(entries: list[dict]) -> str:

@@ -247,7 +247,8 @@ def summary_text(run: str, config: dict, table: list[dict], refs: dict[str, floa
              f"| agent | {c['agent']} ({_agent_size(c)}{', small' if c['small'] else ''}"
              f"{', overrides ' + str(c['overrides']) if c['overrides'] else ''}) |",
              f"| physics, envs per seed | {c['physics']}, {c['envs']} |",
-             f"| devices | {config.get('num_devices', 1)} × {(config.get('devices') or ['?'])[0]} |",
+             f"| devices | {config.get('num_devices', 1)} × {(config.get('devices') or ['?'])[0]}"
+             f"{provenance.driver_note(config.get('provenance', []))} |",
              f"| code | {provenance.code_line(config.get('provenance', []))} |", ""]
     if config.get("provenance"):  # the first start's command (a resume's is `... train --resume <run>`)
         lines += [f"Started by `{config['provenance'][0]['command']}`.", ""]
