@@ -220,7 +220,7 @@ def test_device_batch_relaunch_does_not_wait_for_a_job_killed_from_outside(tmp_p
     import time
 
     body = 'echo launched; [ -f first-done ] || { touch first-done; sleep 60; }'  # the first launch hangs
-    env = _fake_gpu_machine(tmp_path, 1, body, RELAUNCH_WAIT="40")
+    env = _fake_gpu_machine(tmp_path, 1, body, RELAUNCH_WAIT="40", AFTER_POLL="0.05")
     jobs = tmp_path / "jobs.txt"
     jobs.write_text("cut  --task cartpole-balance\n")
     batch = tmp_path / "runs" / "batch"
@@ -230,7 +230,14 @@ def test_device_batch_relaunch_does_not_wait_for_a_job_killed_from_outside(tmp_p
     deadline = time.monotonic() + 20
     while not ((batch / "cut.pid").exists() and (tmp_path / "first-done").exists()) and time.monotonic() < deadline:
         time.sleep(0.05)
+    after = subprocess.run(["bash", DEVICE_BATCH, "after", "cut", "0", "sh", "-c", "echo ran"], capture_output=True,
+                           text=True, timeout=60, env=env, cwd=tmp_path)
+    assert after.returncode == 0, after.stderr
     os.killpg(int((batch / "cut.pid").read_text()), signal.SIGKILL)  # the wrapper and its job, as a `pkill` would
+    deadline = time.monotonic() + 20  # `after` runs its command once the job has ended, killed or not
+    while "ran" not in (batch / "after-cut.log").read_text() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert (batch / "after-cut.log").read_text().startswith("cut ended (exit gone)")
     report = subprocess.run(["bash", DEVICE_BATCH, "wait", "0"], capture_output=True, text=True, timeout=60, env=env,
                             cwd=tmp_path)
     assert "ended: its process is gone without an exit status" in report.stdout, report.stdout
@@ -245,7 +252,9 @@ def test_device_batch_relaunch_does_not_wait_for_a_job_killed_from_outside(tmp_p
         time.sleep(0.05)
     assert (batch / "cut.rc").read_text().strip() == "0"  # the relaunch's own exit status
     assert (batch / "cut.log").read_text() == "launched\nlaunched\n"
-    assert (batch / "commands.txt").read_text().count("cut (GPU 0)") == 2
+    lines = (batch / "commands.txt").read_text().splitlines()
+    assert [line.split(":")[0] for line in lines] == ["cut (GPU 0)", "after cut (GPU 0)", "cut (GPU 0)"]
+    assert (batch / "after-cut.log").read_text().endswith("ran\n")
 
 
 def test_device_batch_does_not_relaunch_a_run_that_reached_its_steps(tmp_path):

@@ -17,7 +17,8 @@
 #                                               SECONDS (negative: sooner), e.g. when a run trains slower than its
 #                                               limit assumed; the report gives each running job's time left
 #   device_batch.sh after NAME GPU COMMAND...   once the job NAME of the running batch has ended (its exit status
-#                                               is in runs/batch/NAME.rc), run COMMAND on GPU in the background
+#                                               is in runs/batch/NAME.rc; "gone" where its process was killed
+#                                               from outside), run COMMAND on GPU in the background
 #                                               (own session; output in runs/batch/after-NAME.log): a benchmark
 #                                               on a GPU that a finished job left idle; returns at once
 #   device_batch.sh check JOBS                  before spending device time, here on the CPU: validate every
@@ -348,8 +349,10 @@ after)
         exit 2
     fi
     command=$(printf '%q ' "$@")
-    CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "while [ ! -f $BATCH/$name.rc ]; do sleep ${AFTER_POLL:-5}; done; \
-        echo \"$name ended (exit \$(cat $BATCH/$name.rc)) at \$(date -u +%T); running on GPU $gpu\"; $command" \
+    # (ended: its NAME.rc, or its wrapper's NAME.pid gone without one, as settle_gone decides)
+    CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "while [ ! -f $BATCH/$name.rc ] && { [ ! -f $BATCH/$name.pid ] \
+        || kill -0 \$(cat $BATCH/$name.pid) 2>/dev/null; }; do sleep ${AFTER_POLL:-5}; done; \
+        [ -f $BATCH/$name.rc ] || echo gone >$BATCH/$name.rc; echo \"$name ended (exit \$(cat $BATCH/$name.rc)) at \$(date -u +%T); running on GPU $gpu\"; $command" \
         >"$BATCH/after-$name.log" 2>&1 </dev/null &
     echo "after $name (GPU $gpu): $*" | tee -a "$BATCH/commands.txt"
     ;;
