@@ -349,7 +349,7 @@ after)
         exit 2
     fi
     command=$(printf '%q ' "$@")
-    # (ended: its NAME.rc, or its wrapper's NAME.pid gone without one, as settle_gone decides)
+    # (ended: its NAME.rc, or its wrapper's NAME.pid gone without one; unlike settle_gone, a zombie waits)
     CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "while [ ! -f $BATCH/$name.rc ] && { [ ! -f $BATCH/$name.pid ] \
         || kill -0 \$(cat $BATCH/$name.pid) 2>/dev/null; }; do sleep ${AFTER_POLL:-5}; done; \
         [ -f $BATCH/$name.rc ] || echo gone >$BATCH/$name.rc; echo \"$name ended (exit \$(cat $BATCH/$name.rc)) at \$(date -u +%T); running on GPU $gpu\"; $command" \

@@ -127,10 +127,10 @@ def nvidia_driver_version(text: str) -> str | None:
 
 
 def device_platform(proc_version: str = "/proc/driver/nvidia/version") -> dict[str, str | None]:
-    """The platform this process computes on, as JAX's persistent compile cache keys it (the backend and its
-    ``platform_version``, e.g. the CUDA and cuDNN versions of the GPU plugin; a cache written under another one
-    misses), and the NVIDIA kernel driver (None without one): ``{"backend": "gpu", "platform_version": "...",
-    "driver": "580.159.04"}``."""
+    """The platform this process computes on: the backend of its first device and the backend's
+    ``platform_version`` string, both of which JAX's persistent compile cache hashes into its keys (a cache written
+    under another one misses), and the NVIDIA kernel driver (None without one): ``{"backend": "gpu",
+    "platform_version": "...", "driver": "580.159.04"}``."""
     import jax
 
     device = jax.devices()[0]
