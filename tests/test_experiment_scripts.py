@@ -173,3 +173,22 @@ def test_program_hashes_tell_runs_apart_by_their_programs(tmp_path, capsys):
     assert rows[2] == "| a | " + " | ".join(script.digest(text["a", p]) for p in script.PROGRAMS) + " |"
     assert rows[3] == rows[2].replace("| a |", "| b |")  # another master seed: the same programs
     assert script.main([str(tmp_path / "none")]) == 2 and "is not a run folder" in capsys.readouterr().err
+    assert script.main(runs[:1] + ["--scatters"]) == 0
+    counts = {p: script.scatter_counts(text["a", p]) for p in script.PROGRAMS}
+    assert capsys.readouterr().out.strip().splitlines()[-1] == "| a | " + " | ".join(
+        f"{counts[p]['adding']} / {counts[p]['other']}" for p in script.PROGRAMS) + " |"
+
+
+def test_program_hashes_count_the_scatters_that_add_over_colliding_indices():
+    """scatter_counts on three one-scatter programs: an add over indices that may repeat counts as adding; a set,
+    and an add whose indices are declared unique, count as other."""
+    import jax
+    import jax.numpy as jnp
+
+    script = _script("program_hashes")
+    x, i, v = jnp.zeros(8), jnp.array([1, 1, 3]), jnp.ones(3)
+    text = lambda f: jax.jit(f).lower(x, i, v).as_text()
+    assert script.scatter_counts(text(lambda x, i, v: x.at[i].add(v))) == {"adding": 1, "other": 0}
+    assert script.scatter_counts(text(lambda x, i, v: x.at[i].set(v))) == {"adding": 0, "other": 1}
+    assert script.scatter_counts(text(lambda x, i, v: x.at[i].add(v, unique_indices=True))) == {"adding": 0, "other": 1}
+    assert script.scatter_counts(text(lambda x, i, v: x + v.sum())) == {"adding": 0, "other": 0}
