@@ -192,3 +192,22 @@ def test_program_hashes_count_the_scatters_that_add_over_colliding_indices():
     assert script.scatter_counts(text(lambda x, i, v: x.at[i].set(v))) == {"adding": 0, "other": 1}
     assert script.scatter_counts(text(lambda x, i, v: x.at[i].add(v, unique_indices=True))) == {"adding": 0, "other": 1}
     assert script.scatter_counts(text(lambda x, i, v: x + v.sum())) == {"adding": 0, "other": 0}
+
+
+def test_acrobot_divergence_plays_each_start_twice_one_ulp_apart(tmp_path, capsys):
+    """Two starts, 4 agent steps: the nudged play differs from the first agent step on (one ulp of a joint angle
+    shows in the observation) by amounts of round-off's order; the CSV holds one row per agent step; bad sizes are
+    refused naming the flag; first_above finds the first step over a level (1-based) or None."""
+    script = _script("acrobot_divergence")
+    gaps = script.divergence(starts=2, agent_steps=4, action_repeat=2)
+    assert gaps.shape == (2, 4) and np.all(gaps[:, 0] > 0) and np.all(gaps < 1e-3)
+    out = str(tmp_path / "div")
+    assert script.main(["--starts", "2", "--agent-steps", "4", "--action-repeat", "2", "--out", out]) == 0
+    rows = list(csv.DictReader(open(f"{out}.csv")))
+    assert [int(r["agent_step"]) for r in rows] == [1, 2, 3, 4]
+    assert np.allclose([float(r["max"]) for r in rows], gaps.max(axis=0), rtol=1e-5)
+    printed = capsys.readouterr().out
+    assert os.path.getsize(f"{out}.png") > 1000 and "median above 0.001 from agent step never" in printed
+    assert script.main(["--starts", "0"]) == 2 and "--starts must be at least 1, not 0" in capsys.readouterr().err
+    assert script.first_above(np.array([0.0, 1e-4, 0.2, 0.5]), 1e-3) == 3
+    assert script.first_above(np.array([0.0, 1e-4]), 1e-3) is None
