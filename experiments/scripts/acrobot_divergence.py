@@ -25,7 +25,7 @@ import numpy as np
 
 def divergence(starts: int, agent_steps: int, action_repeat: int, seed: int = 0) -> np.ndarray:
     """(starts, agent_steps) largest absolute difference between the clean observations of the two plays of each
-    start (:mod:`module docstring <acrobot_divergence>`), after each agent step."""
+    start (see the module docstring), after each agent step."""
     import jax
     import jax.numpy as jnp
 
@@ -41,7 +41,7 @@ def divergence(starts: int, agent_steps: int, action_repeat: int, seed: int = 0)
     def play(qpos, qvel, actions):  # (starts, nq), (starts, nv), (T, starts, A) -> (T, starts, obs)
         def one(q, v, acts):
             def step(state, action):
-                state = env._step(state, action)
+                state = env.step(state, action)
                 return state, state.clean_obs
             return jax.lax.scan(step, env.reset_to(q, v), acts)[1]
         return jax.vmap(one, in_axes=(0, 0, 1), out_axes=1)(qpos, qvel, actions)
