@@ -76,7 +76,7 @@ def _train_parser(sub) -> None:
     p.add_argument("--runs-dir", help="parent of new run folders (default runs)")
     p.add_argument("--name", help="run folder suffix (default: the corruption tag, e.g. noise0.1)")
     p.add_argument("--out", help="exact run folder (an existing one with checkpoints is resumed)")
-    p.add_argument("--resume", help="run folder to continue exactly (its config.json; --steps may extend it)")
+    p.add_argument("--resume", help="run folder to continue (its config.json; --steps may extend it)")
     p.add_argument("--tensorboard", action="store_true", help="also write TensorBoard scalars (tensorboardX)")
     p.add_argument("--wandb", metavar="PROJECT",
                    help="also log to this Weights & Biases project (WANDB_MODE=offline: no network)")
