@@ -12,7 +12,7 @@ boundary past each multiple), at the end, and on Ctrl-C / SIGTERM (after the run
 at once). The chunks are of equal length, sized so that the last one ends at the budget
 (:mod:`lnnmpc.train.schedule`). Checkpoints hold the whole state and the host's counters, and the chunk schedule
 depends only on the configuration, so a resumed run computes what the uninterrupted run would have: bit for bit on
-the CPU, up to the round-off by which any two GPU launches of one command part (experiments/RESULTS.md [92]). An
+the CPU, up to the round-off by which two GPU launches of one command can part (experiments/RESULTS.md [92]). An
 extended budget resizes the chunks from the resume on: the training is the same (it does not depend on where chunks
 end), the evaluations and checkpoints may fall at other steps than in a run started with that budget.
 
