@@ -349,10 +349,10 @@ after)
         exit 2
     fi
     command=$(printf '%q ' "$@")
-    # (ended: its NAME.rc, or its wrapper's NAME.pid gone without one; unlike settle_gone, a zombie waits)
-    CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "while [ ! -f $BATCH/$name.rc ] && { [ ! -f $BATCH/$name.pid ] \
-        || kill -0 \$(cat $BATCH/$name.pid) 2>/dev/null; }; do sleep ${AFTER_POLL:-5}; done; \
-        [ -f $BATCH/$name.rc ] || echo gone >$BATCH/$name.rc; echo \"$name ended (exit \$(cat $BATCH/$name.rc)) at \$(date -u +%T); running on GPU $gpu\"; $command" \
+    export BATCH
+    export -f settle_gone  # the background wait decides "ended" as start and the report do
+    CUDA_VISIBLE_DEVICES=$gpu setsid nohup bash -c "until settle_gone $name; do sleep ${AFTER_POLL:-5}; done; \
+        echo \"$name ended (exit \$(cat $BATCH/$name.rc)) at \$(date -u +%T); running on GPU $gpu\"; $command" \
         >"$BATCH/after-$name.log" 2>&1 </dev/null &
     echo "after $name (GPU $gpu): $*" | tee -a "$BATCH/commands.txt"
     ;;
