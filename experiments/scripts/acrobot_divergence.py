@@ -17,7 +17,6 @@ and how many starts' two plays ended identical (the ulp rounded away); ``--out P
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 
 import numpy as np
@@ -82,11 +81,12 @@ def main(argv: list[str] | None = None) -> int:
                   + (f"{step} ({step * args.action_repeat} control steps)" if step else "never"))
     print(f"starts whose two plays ended identical: {int(np.sum(gaps[:, -1] == 0))} of {args.starts}")
     if args.out:
-        with open(f"{args.out}.csv", "w", newline="") as f:
-            writer = csv.writer(f)
-            writer.writerow(["agent_step", "median", "q25", "q75", "max"])
-            for s in range(gaps.shape[1]):
-                writer.writerow([s + 1] + [f"{c[s]:.6e}" for c in (median, q25, q75, largest)])
+        from lnnmpc.train import runfolder
+
+        fields = ["agent_step", "median", "q25", "q75", "max"]
+        runfolder.write_csv(f"{args.out}.csv", fields, [
+            dict(zip(fields, [s + 1] + [f"{c[s]:.6e}" for c in (median, q25, q75, largest)], strict=True))
+            for s in range(gaps.shape[1])])
         import matplotlib
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
