@@ -114,7 +114,7 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                   "deep, pink exploration noise ([55], [64]), and the learning rate decayed to 0.1 x over updates "
                   "50K-100K (environment steps 100K-200K). 1.9 x the environment steps per second of acting every 2. "
                   "The same command launched again on master seed 1: 624.5 (dm_control 621.7) [91]; GPU launches "
-                  "do not replay each other bit for bit."),
+                  "need not replay each other bit for bit [92]."),
         runs=tuple(f"{_BATCH84}/acrobot-recipe-ar4-seed{seed}" for seed in (1, 2, 3))),
 )}
 
