@@ -18,6 +18,7 @@ install: $(STAMP)
 #            [TRAIN_ARGS="--set plan_horizon=5 --eval-every 20000 ..."]       (python -m lnnmpc.train.cli train -h)
 #            [TRAIN_ARGS="--eval-prior"]: every evaluation also plays its episodes with the policy prior alone
 #            [TRAIN_ARGS="--eval-policies"]: every evaluation also keeps its policy, policies/policy-<step>.npz
+#            [TRAIN_ARGS="--deterministic"]: XLA's deterministic GPU ops, so a launch replays bit for bit (slower)
 # make train RESUME=<run folder> [STEPS=...]        continue a run exactly where its newest checkpoint left it
 # make train RECIPE=sparse [SEEDS=3] [TASK=...]      a task's measured best settings (`make recipes` lists them);
 #            TASK, AGENT, ENVS, OBS and EVAL_OBS come from the recipe unless given on the command line

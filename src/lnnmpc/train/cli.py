@@ -83,6 +83,11 @@ def _train_parser(sub) -> None:
     p.add_argument("--compile-cache", help='XLA compilation cache folder ("" turns it off)')
     p.add_argument("--compile-ahead", choices=("auto", "on", "off"),
                    help="compile the run's programs in parallel before training (default auto: with >= 4 cores)")
+    p.add_argument("--deterministic", action="store_true",
+                   help="compile under XLA's deterministic GPU ops (XLA_FLAGS=--xla_gpu_deterministic_ops=true): "
+                        "two launches of one command side by side on an H100 then replayed each other bit for bit "
+                        "(RESULTS.md [93]); slower there (acrobot recipe: ~300 env steps/s against ~400), no "
+                        "effect on the CPU")
     p.add_argument("--check", action="store_true",
                    help="validate the whole configuration (environments, agent, overrides, resume), print what "
                         "would run, write and compile nothing")
@@ -205,7 +210,8 @@ def describe_setup(setup) -> str:
             f"{setup.final_env_steps:,} env steps), replay "
             f"{loop.config.replay_capacity:,} per env, batch {loop.config.batch_size}, "
             f"{loop.config.updates_per_step} update(s) per agent step, action repeat {loop.env.action_repeat}, "
-            f"{setup.num_devices} device(s)\n")
+            f"{setup.num_devices} device(s)"
+            f"{', XLA deterministic GPU ops' if c.deterministic else ''}\n")
 
 
 def run_command(args: argparse.Namespace) -> None:

@@ -30,9 +30,10 @@ TRUE, FALSE = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 # ``eval_policies`` only writes files.
 # ``overrides`` may change as long as the agent's resolved hyperparameters stay those of the checkpoint (checked
 # by lnnmpc.train.compat.check_agent_config), e.g. to pin a default that changed in the code since the run.
+# ``deterministic`` changes only how a GPU sums (round-off), not what is computed; each start records its XLA_FLAGS.
 RESUMABLE_CHANGES = ("steps", "name", "runs_dir", "checkpoint_every", "keep_checkpoints", "devices",
                      "tensorboard", "wandb", "compile_cache", "compile_ahead", "eval_prior", "eval_policies",
-                     "overrides")
+                     "overrides", "deterministic")
 COMPILE_AHEAD = ("auto", "on", "off")
 
 
@@ -173,6 +174,11 @@ class TrainConfig:
       compile_ahead: compile the run's programs in parallel threads before the first runs ("on"), or each
         when first called ("off"); "auto": on with at least 4 CPU cores (with fewer, threads gain little and a
         run stopped early pays for programs it never called).
+      deterministic: compile under XLA's deterministic GPU ops (``--xla_gpu_deterministic_ops=true`` added to
+        ``XLA_FLAGS`` before the backend starts). Without it, two launches of one command on a GPU may part by
+        round-off (RESULTS.md [92]: apart at their first evaluation); with it, two side by side on an H100 wrote
+        the same eval.csv and train.csv bit for bit (RESULTS.md [93]), at 302-304 env steps/s each against
+        [91]'s 399 without (acrobot recipe, another H100). No effect on the CPU, whose launches replay anyway.
     """
 
     task: str
@@ -208,6 +214,7 @@ class TrainConfig:
     eval_policies: bool = False
     explore_noise_beta: float | None = None
     seed_noise_beta: float | None = None
+    deterministic: bool = False
 
     def __post_init__(self):
         from lnnmpc.agents.registry import AGENTS
@@ -231,7 +238,7 @@ class TrainConfig:
         if self.steps < self.seed_steps:
             raise ConfigError(f"steps ({self.steps}) must be >= seed_steps ({self.seed_steps}): the budget "
                               "includes the random seed phase")
-        for name in ("small", "tensorboard", "eval_prior", "eval_policies"):
+        for name in ("small", "tensorboard", "eval_prior", "eval_policies", "deterministic"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(f"{name} must be True or False, got {getattr(self, name)!r}")
         for name, default in (("explore_noise_beta", "TD-MPC2's white noise"),

@@ -6,7 +6,7 @@ was stopped and resumed on another machine says so:
     {"time": "2026-11-27T13:23:40Z", "command": "python -m lnnmpc.train.cli train --task walker-run ...",
      "argv": [...], "cwd": "/work/main", "host": "gpu-7", "python": "3.12.3",
      "git": {"commit": "827c1e3...", "dirty": false}, "versions": {"jax": "0.11.2", ...},
-     "platform": {"backend": "gpu", "platform_version": "...", "driver": "580.159.04"},
+     "platform": {"backend": "gpu", "platform_version": "...", "driver": "580.159.04", "xla_flags": ""},
      "startup": {"imports": 4.1, "devices": 9.8, "built": 12.0, "validated": 14.2}}
 
 ``startup`` gives the seconds since the process started at which each start-up step ended (:func:`mark_startup`;
@@ -129,8 +129,9 @@ def nvidia_driver_version(text: str) -> str | None:
 def device_platform(proc_version: str = "/proc/driver/nvidia/version") -> dict[str, str | None]:
     """The platform this process computes on: the backend of its first device and the backend's
     ``platform_version`` string, both of which JAX's persistent compile cache hashes into its keys (a cache written
-    under another one misses), and the NVIDIA kernel driver (None without one): ``{"backend": "gpu",
-    "platform_version": "...", "driver": "580.159.04"}``."""
+    under another one misses), the NVIDIA kernel driver (None without one) and the ``XLA_FLAGS`` it started
+    under (``--deterministic`` adds one): ``{"backend": "gpu", "platform_version": "...", "driver": "580.159.04",
+    "xla_flags": ""}``."""
     import jax
 
     device = jax.devices()[0]
@@ -139,7 +140,8 @@ def device_platform(proc_version: str = "/proc/driver/nvidia/version") -> dict[s
             driver = nvidia_driver_version(f.read())
     except OSError:
         driver = None
-    return {"backend": device.platform, "platform_version": str(device.client.platform_version), "driver": driver}
+    return {"backend": device.platform, "platform_version": str(device.client.platform_version), "driver": driver,
+            "xla_flags": os.environ.get("XLA_FLAGS", "")}
 
 
 def provenance_entry(argv: list[str] | None = None) -> dict:

@@ -163,6 +163,7 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
     else:  # a new run records its task's default hyperparameters with the user's overrides
         config = dataclasses.replace(config, overrides=task_default_overrides(config.agent, config.task,
                                                                               config.overrides))
+    enable_deterministic_ops(config.deterministic)
     jax.devices()  # the backend's start (GPU contexts), timed on its own
     mark_startup("devices")
     loop = build_loop(config)
@@ -191,6 +192,31 @@ def validate(config: TrainConfig | None = None, *, resume: str | None = None, st
     mark_startup("validated")
     return Setup(config=config, loop=loop, run=run, resume_step=resume_step, num_devices=num_devices,
                  state_shapes=shapes)
+
+
+DETERMINISTIC_FLAG = "--xla_gpu_deterministic_ops=true"
+
+
+def enable_deterministic_ops(on: bool) -> None:
+    """Adds :data:`DETERMINISTIC_FLAG` to ``XLA_FLAGS`` (``TrainConfig.deterministic``). XLA reads the variable
+    once, when JAX starts its backend: where this process started a GPU backend already without the flag, raises
+    ConfigError, since the run would silently not be deterministic. A started CPU backend is left as it is (its
+    programs replay anyway), as is a variable that already holds the flag."""
+    if not on:
+        return
+    flags = os.environ.get("XLA_FLAGS", "")
+    if DETERMINISTIC_FLAG in flags.split():
+        return
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        if jax.default_backend() == "cpu":
+            return
+        raise ConfigError(f"deterministic=True needs XLA_FLAGS={DETERMINISTIC_FLAG} before JAX starts its "
+                          f"{jax.default_backend()} backend, and this process started it already (XLA_FLAGS="
+                          f"{flags!r}): set the variable before the first JAX computation, or train from the "
+                          "command line (--deterministic)")
+    os.environ["XLA_FLAGS"] = f"{flags} {DETERMINISTIC_FLAG}".strip()
 
 
 def enable_compile_cache(folder: str) -> None:
