@@ -26,7 +26,8 @@ def test_resuming_with_an_incompatible_configuration_is_refused(tmp_path):
         validate(changed)
     assert "cannot resume" in str(error.value) and "seed: checkpoint has 0, now 3" in str(error.value)
     assert ("Only steps, name, runs_dir, checkpoint_every, keep_checkpoints, devices, tensorboard, wandb, "
-            "compile_cache, compile_ahead, eval_prior, eval_policies, deterministic and overrides that keep") in str(error.value)
+            "compile_cache, compile_ahead, eval_prior, eval_policies, deterministic and overrides that keep"
+            ) in str(error.value)
     # steps, checkpoint cadence, devices and the like may change; the replay buffer keeps its size.
     setup = validate(resume=run, steps=10**6)
     assert setup.config.steps == 10**6 and setup.config.replay_capacity == 3000 and setup.resume_step is None

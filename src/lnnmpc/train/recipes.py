@@ -70,7 +70,7 @@ def _text(value: Any) -> str:
 
 _RESULTS = "experiments/results"
 _BATCH71 = f"{_RESULTS}/cfc-cartpole-nv-recipe-lrdecay-seed0-sparse-lambda0-lrdecay-seed3-h200-200k"
-_BATCH84 = f"{_RESULTS}/cfc-acrobot-recipe-ar4-ar8-h100-200k"
+_BATCH93 = f"{_RESULTS}/cfc-acrobot-recipe-ar6-h100-200k"
 
 RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
     Recipe(
@@ -101,21 +101,23 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
               f"{_BATCH71}/cp-nv-recipe-lrdecay-seed0")),
     Recipe(
         name="acrobot", task="acrobot-swingup", agent="cfc-zp-det",
-        train={"envs": 16, "explore_noise_beta": 1.0, "updates_per_step": 2, "action_repeat": 4},
+        train={"envs": 16, "explore_noise_beta": 1.0, "updates_per_step": 2, "action_repeat": 6},
         overrides={"rollout_steps": 6, "rollout_stride": 3, "lambda_": 0, "horizon": 16,
                    "learn_episode_starts": True, "latent_head": "simnorm", "latent_size": 256,
-                   "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1},
-        measured=("acrobot-swingup: 655.9 / 620.6 / 651.5 at 200K on master seeds 1-3 (one seed each; 642.7 over the "
-                  "three; dm_control 621.4 / 580.8 / 562.7, 588.3), RESULTS.md [84]: the best acrobot line "
-                  "measured, under issue #5's 700 and the thesis's 883; TD-MPC2 278.1 here. Acting every 4 control "
-                  "steps: acting every 2 the same master seeds ended at 435.6 / 387.4 / 620.4 (481.1; dm_control "
-                  "456.1) [77], every 8 at 484.6 / 584.1 / 666.8 (578.5) [84]. Two updates per agent step (one: "
-                  "399.6 at action repeat 2 [73]), walker's training window and latent head, model losses 6 steps "
-                  "deep, pink exploration noise ([55], [64]), and the learning rate decayed to 0.1 x over updates "
-                  "50K-100K (environment steps 100K-200K). 1.9 x the environment steps per second of acting every 2. "
-                  "The same command launched again on master seed 1: 624.5 (dm_control 621.7) [91]; GPU launches "
-                  "need not replay each other bit for bit [92]."),
-        runs=tuple(f"{_BATCH84}/acrobot-recipe-ar4-seed{seed}" for seed in (1, 2, 3))),
+                   "lr_decay_begin": 33_333, "lr_decay_end": 66_667, "lr_final_scale": 0.1},
+        measured=("acrobot-swingup: 624.5 / 650.6 / 658.6 at 200K on master seeds 1-3 (one seed each; 644.6 over the "
+                  "three; dm_control 602.8 / 616.3 / 585.3, 601.5; corrected for the starts' energy 645.4), "
+                  "RESULTS.md [93]: the best acrobot line measured, under issue #5's 700 and the thesis's 883; "
+                  "TD-MPC2 278.1 here. Acting every 6 control steps: every 4, the recipe before, ended at 655.9 / "
+                  "620.6 / 651.5 (642.7; dm_control 588.3; energy-corrected 629.4) and learned slower (541.1 over "
+                  "the last three evaluations against 613.4) [84], every 2 at 481.1 [77], every 8 at 578.5 [84]. Two "
+                  "updates per agent step (one: 399.6 at action repeat 2 [73]), walker's training window and latent "
+                  "head, model losses 6 steps deep, pink exploration noise ([55], [64]), and the learning rate "
+                  "decayed to 0.1 x over updates 33,333-66,667 (environment steps 100K-200K). 1.5 x the environment "
+                  "steps per second of acting every 4. GPU launches need not replay each other bit for bit (the "
+                  "recipe at every 4 launched twice on master seed 1: 655.9, 624.5 [91]); --deterministic makes "
+                  "them [93]."),
+        runs=tuple(f"{_BATCH93}/acrobot-recipe-ar6-seed{seed}" for seed in (1, 2, 3))),
 )}
 
 
