@@ -180,7 +180,7 @@ def test_recipes_give_the_matching_runs_their_settings_and_folders(tmp_path, cap
     assert (config.envs, config.seed_steps, config.explore_noise_beta, config.seed_noise_beta) == (8, 20_000, 1.0, 1.0)
     assert config.overrides == {"lambda_": 0, "lr_decay_begin": 50_000, "lr_decay_end": 100_000, "lr_final_scale": 0.1}
     acrobot = specs["acrobot-swingup", "cfc-zp-det"]
-    assert acrobot.recipe == "acrobot" and acrobot.config.envs == 16 and acrobot.config.action_repeat == 4
+    assert acrobot.recipe == "acrobot" and acrobot.config.envs == 16 and acrobot.config.action_repeat == 6
     assert acrobot.folder.endswith("-envs16-recipe-acrobot")
     assert sorted(s.recipe for s in specs.values() if s.recipe) == ["acrobot", "sparse"]  # 2 of 28 runs
     plain = specs["cartpole-swingup-sparse", "tdmpc2"]
