@@ -115,8 +115,8 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                   "head, model losses 6 steps deep, pink exploration noise ([55], [64]), and the learning rate "
                   "decayed to 0.1 x over updates 33,333-66,667 (environment steps 100K-200K). 1.5 x the environment "
                   "steps per second of acting every 4. GPU launches need not replay each other bit for bit (the "
-                  "recipe at every 4 launched twice on master seed 1: 655.9, 624.5 [91]); --deterministic makes "
-                  "them [93]."),
+                  "recipe at every 4 launched twice on master seed 1: 655.9, 624.5 [91]); under --deterministic two "
+                  "launches side by side replayed byte for byte [93]."),
         runs=tuple(f"{_BATCH93}/acrobot-recipe-ar6-seed{seed}" for seed in (1, 2, 3))),
 )}
 
