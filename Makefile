@@ -97,10 +97,12 @@ compare: $(STAMP)
 # make paired CSVS="a.csv b.csv ..." [LABELS="'a' 'b'"] [PLOT=paired.png] [COMMON=1]
 #   evaluations of several policies on the same episodes (make eval, one EVAL_SEED) compared episode by episode
 #   against the first: mean difference ± standard error, episodes more / less, correlation
-# make paired RUNS="runs/a runs/b ..." [STEP=200128|all]
-#   the same for runs' training-time evaluations (same task and master seed: the same episodes at each evaluation)
+# make paired RUNS="runs/a runs/b ..." [STEP=200128|all] [EVALUATION=K]
+#   the same for runs' training-time evaluations (same task and master seed: the same episodes at each evaluation);
+#   EVALUATION=K pairs each run's K-th evaluation (-1 the last) for runs evaluated at other steps (action repeat)
 paired: $(STAMP)
 	$(PY) -m lnnmpc.train.paired $(if $(RUNS),--runs $(RUNS),$(CSVS)) $(if $(STEP),--step $(STEP)) \
+		$(if $(EVALUATION),--evaluation $(EVALUATION)) \
 		$(if $(LABELS),--labels $(LABELS)) $(if $(PLOT),--plot "$(PLOT)") $(if $(COMMON),--common)
 
 # make tables RUNS="<run folder> <run folder> ..." [LABELS="'a' 'b'"] [FALLS=400]

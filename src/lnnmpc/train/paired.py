@@ -27,7 +27,9 @@ evaluation draws its episodes from its master seed and k alone (``lnnmpc.train.t
 runs of one task with the same master seed, seed count, episode count and evaluation corruption, evaluated at the
 same step as their k-th evaluation, played the same episodes whatever else their settings (the rate, the Q heads,
 the action repeat). The step is ``--step`` or the last one every run evaluated at (``--step all``: one table per
-step they share); runs that differ in any of those, or that started with code older than
+step they share). Runs whose evaluations fall at other steps (another action repeat or environment count:
+200,128 against 200,256) are paired by their k-th evaluation instead, ``--evaluation K`` (1 the first, -1 the
+last); runs that differ in any of those, or that started with code older than
 ``lnnmpc.train.provenance.KEYS_SINCE_COMMIT``, are refused naming why.
 
 The standard error counts the episodes only: it says how surely these trained policies differ on these starts, not
@@ -160,7 +162,9 @@ def training_evaluations(runs: list[str], step: int | str | None) -> list[list[E
     evaluations = [read_training_evaluations(run) for run in runs]
     common = sorted(set.intersection(*(set(e) for e in evaluations)))
     if not common:
-        raise ConfigError(f"the runs share no evaluation step: {', '.join(map(repr, runs))}")
+        raise ConfigError(f"the runs share no evaluation step: {', '.join(map(repr, runs))} (runs evaluated "
+                          "at other steps, e.g. with another action repeat, pair by their k-th evaluation: "
+                          "--evaluation K)")
     out = []
     for chosen in common if step == "all" else [common[-1] if step is None else step]:
         at_step = [evaluation_at(run, e, chosen) for run, e in zip(runs, evaluations, strict=True)]
@@ -168,6 +172,25 @@ def training_evaluations(runs: list[str], step: int | str | None) -> list[list[E
             check_same_training_episodes(at_step[0], other)
         out.append(at_step)
     return out
+
+
+def training_evaluations_by_number(runs: list[str], number: int) -> list[EpisodeReturns]:
+    """The runs' ``number``-th training-time evaluations (1 the first, 2 the second, ...; -1 the last), at whatever
+    env step each one was: the k-th evaluation's episodes depend on k, not on its step, so runs that evaluate at
+    other steps (another action repeat or environment count) play the same episodes there. ConfigError for 0, for
+    a run with fewer evaluations, or where the picked evaluations played other episodes (e.g. -1 picking the
+    fifth of one run and the sixth of another)."""
+    if isinstance(number, bool) or not isinstance(number, int) or number == 0:
+        raise ConfigError(f"--evaluation counts from 1 (the first) or from -1 (the last), got {number!r}")
+    picked = []
+    for run in runs:
+        evaluations = list(read_training_evaluations(run).values())
+        if abs(number) > len(evaluations):
+            raise ConfigError(f"{run!r} holds {len(evaluations)} evaluation(s): --evaluation {number} picks none")
+        picked.append(evaluations[number - 1 if number > 0 else number])
+    for other in picked[1:]:
+        check_same_training_episodes(picked[0], other)
+    return picked
 
 
 def _step(text: str) -> int | str:
@@ -270,6 +293,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs", action="store_true", help="compare run folders on their training-time evaluations")
     p.add_argument("--step", type=_step, default=None, help="with --runs: the env step whose evaluation to compare "
                    "(default: the last that every run evaluated at; all: one table per step they share)")
+    p.add_argument("--evaluation", type=int, default=None, metavar="K",
+                   help="with --runs: pair each run's K-th evaluation (1 the first, -1 the last) whatever its env "
+                        "step, for runs that evaluate at other steps (another action repeat or env count)")
     p.add_argument("--labels", nargs="+", default=None, help="one label per CSV (default: the file names)")
     p.add_argument("--plot", default=None, metavar="PNG", help="also draw each CSV's returns against the first's")
     p.add_argument("--common", action="store_true", help="compare the (seed, episode) rows all CSVs hold (e.g. "
@@ -282,9 +308,15 @@ def main(argv: list[str] | None = None) -> int:
         labels = args.labels or [os.path.basename(os.path.normpath(c)) for c in args.csvs]
         if len(labels) != len(args.csvs):
             raise ConfigError(f"{len(labels)} labels for {len(args.csvs)} CSVs: give one label per CSV")
-        if args.step is not None and not args.runs:
-            raise ConfigError("--step picks a training evaluation: give it with --runs")
-        if args.runs:
+        for option, value in (("--step", args.step), ("--evaluation", args.evaluation)):
+            if value is not None and not args.runs:
+                raise ConfigError(f"{option} picks a training evaluation: give it with --runs")
+        if args.step is not None and args.evaluation is not None:
+            raise ConfigError("give --step (an env step every run evaluated at) or --evaluation (each run's K-th "
+                              "evaluation), not both")
+        if args.evaluation is not None:
+            sections = [training_evaluations_by_number(args.csvs, args.evaluation)]
+        elif args.runs:
             sections = training_evaluations(args.csvs, args.step)
             if args.plot and len(sections) > 1:
                 raise ConfigError("--plot draws one evaluation's episodes: give --step STEP, not all")
@@ -302,6 +334,9 @@ def main(argv: list[str] | None = None) -> int:
             if not shared_rows(csvs):
                 raise ConfigError("the CSVs share no (seed, episode) row that all of them hold")
             table = paired_table(paired_rows(csvs, labels))
+            if args.evaluation is not None:
+                steps = " / ".join(f"{c.env_step:,}" for c in csvs)
+                table = f"evaluation {args.evaluation} of each run, at env step {steps}\n\n{table}"
             tables.append(f"env step {csvs[0].env_step:,}\n\n{table}" if args.step == "all" else table)
         sys.stderr.write(LAUNCH_NOTE)
         text = "\n\n".join(tables)
