@@ -89,6 +89,8 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from lnnmpc.train.png import save_png
+
     energy = np.array([row["start_energy"] for row in rows])
     fig, ax = plt.subplots(figsize=(7, 4.5))
     for label in planners:
@@ -101,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
     ax.set_title("acrobot-swingup: return against the start's energy, dm_control starts")
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(f"{args.out}.png", dpi=110)
+    save_png(fig, f"{args.out}.png", dpi=110)
     print(f"wrote {args.out}.csv and {args.out}.png")
     return 0
 

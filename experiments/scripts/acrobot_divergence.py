@@ -91,6 +91,8 @@ def main(argv: list[str] | None = None) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
+        from lnnmpc.train.png import save_png
+
         fig, ax = plt.subplots(figsize=(6, 3.5))
         steps = np.arange(1, gaps.shape[1] + 1)
         shown_floor = lambda c: np.maximum(c, 1e-10)  # noqa: E731 (zero: the plays agree bit for bit)
@@ -103,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.set_title("acrobot-swingup, uniform random actions: one float32 ulp in the first joint angle", fontsize=9)
         ax.legend(fontsize=8)
         fig.tight_layout()
-        fig.savefig(f"{args.out}.png", dpi=120)
+        save_png(fig, f"{args.out}.png", dpi=120)
         print(f"wrote {args.out}.csv and {args.out}.png")
     return 0
 

@@ -83,6 +83,8 @@ def plot(path: str, q: np.ndarray, g: np.ndarray, above: np.ndarray | None, titl
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from lnnmpc.train.png import save_png
+
     episodes = q.shape[0]
     fig, axes = plt.subplots(episodes, 1, figsize=(9, 2.2 * episodes), sharex=True, squeeze=False)
     for e, ax in enumerate(axes[:, 0]):
@@ -96,7 +98,7 @@ def plot(path: str, q: np.ndarray, g: np.ndarray, above: np.ndarray | None, titl
     axes[-1, 0].set_xlabel("agent step")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_png(fig, path, dpi=110)
     plt.close(fig)
 
 
