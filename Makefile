@@ -55,6 +55,7 @@ recipes: $(STAMP)
 #           [ACTOR=prior]: the policy prior alone acts (no MPPI), to see what planning adds
 #           [PLANNER="plan_horizon=5 iterations=12"]: plan with other MPPI settings than the run trained with
 #           [EVAL_SEED=k]: the episodes' seed (default 0); evaluations with one seed play the same episodes
+#           [DETERMINISTIC=1]: XLA's deterministic GPU ops, so that the evaluation replays on a GPU (slower)
 RUN        ?=
 EPISODES   ?= 10
 BACKEND    ?= mjx
@@ -65,15 +66,16 @@ eval: $(STAMP)
 	$(PY) -m lnnmpc.train.cli eval "$(RUN)" --episodes $(EPISODES) --backend $(BACKEND) \
 		$(if $(filter command line,$(origin OBS)),--obs "$(OBS)") $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
 		$(if $(ACTOR),--actor $(ACTOR)) $(foreach setting,$(PLANNER),--planner $(setting)) \
-		$(if $(EVAL_SEED),--seed $(EVAL_SEED))
+		$(if $(EVAL_SEED),--seed $(EVAL_SEED)) $(if $(DETERMINISTIC),--deterministic)
 
 # make video RUN=<run folder> [OUT=episode.mp4|.gif] [CHECKPOINT=...] [ACTOR=prior]  (offscreen OpenGL: Mesa EGL by default)
 # [FILMS=N [FALLS=R]]: N episodes into a folder, keeping those whose return ended below R
+# [DETERMINISTIC=1]: XLA's deterministic GPU ops for the planner (as make eval)
 OUT ?=
 video: $(STAMP)
 	MUJOCO_GL=$${MUJOCO_GL:-egl} $(PY) -m lnnmpc.train.cli video "$(RUN)" $(if $(OUT),--out "$(OUT)") \
 		$(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) $(if $(FILMS),--episodes $(FILMS)) \
-		$(if $(FALLS),--falls-below $(FALLS)) $(if $(ACTOR),--actor $(ACTOR))
+		$(if $(FALLS),--falls-below $(FALLS)) $(if $(ACTOR),--actor $(ACTOR)) $(if $(DETERMINISTIC),--deterministic)
 
 # make report RUN=<run folder>: redraw curve.png and summary.md
 report: $(STAMP)

@@ -90,3 +90,48 @@ def test_provenance_records_the_xla_flags(monkeypatch, tmp_path):
     assert provenance.device_platform(str(tmp_path / "missing"))["xla_flags"] == DETERMINISTIC_FLAG
     monkeypatch.delenv("XLA_FLAGS")
     assert provenance.device_platform(str(tmp_path / "missing"))["xla_flags"] == ""
+
+
+def test_eval_and_video_set_the_flag_before_the_backend_starts(tmp_path):
+    """`eval --deterministic` and `video --deterministic` in a fresh process: the CLI asks for the flag before any
+    backend has started (here both then refuse a folder that is no run, exit status 2, as they would after it);
+    without the option the flag is not asked for."""
+    script = textwrap.dedent(f"""
+        import os
+        from jax._src import xla_bridge
+        from lnnmpc.train import setup
+        from lnnmpc.train.cli import main
+
+        seen = []
+        original = setup.enable_deterministic_ops
+
+        def spy(on):
+            seen.append((on, xla_bridge.backends_are_initialized()))
+            original(on)
+
+        setup.enable_deterministic_ops = spy
+        for command in (["eval", "--episodes", "2"], ["video"], ["eval", "--deterministic"],
+                        ["video", "--deterministic"]):
+            try:
+                main([command[0], {str(tmp_path / "no-run")!r}, *command[1:]])
+            except SystemExit as stop:
+                seen.append(stop.code)
+        print("seen:", seen, "| flags:", os.environ.get("XLA_FLAGS"))
+    """)
+    env = {**os.environ, "PYTHONPATH": SRC, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": ""}
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert ("seen: [(False, False), 2, (False, False), 2, (True, False), 2, (True, False), 2] | flags: "
+            f"{DETERMINISTIC_FLAG}\n") in done.stdout
+    assert done.stderr.count("is not a run folder (no config.json)") == 4
+
+
+def test_make_eval_and_video_pass_deterministic():
+    root = os.path.join(os.path.dirname(__file__), "..")
+    for target in ("eval", "video"):
+        given = subprocess.run(["make", "-n", "-s", target, "RUN=runs/a", "DETERMINISTIC=1"], cwd=root,
+                               capture_output=True, text=True, check=True)
+        plain = subprocess.run(["make", "-n", "-s", target, "RUN=runs/a"], cwd=root, capture_output=True, text=True,
+                               check=True)
+        assert f"lnnmpc.train.cli {target} " in given.stdout and " --deterministic" in given.stdout
+        assert "--deterministic" not in plain.stdout

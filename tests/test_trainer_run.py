@@ -446,7 +446,7 @@ def test_eval_with_the_policy_prior_alone_on_mjx_and_dm_control(reference, monke
     assert np.all((prior.returns >= 0) & (prior.returns <= 1000))
     assert not np.allclose(prior.returns, planner.returns)  # another actor, not MPPI under another name
     stdout, _ = _cli_in_process(capsys, "eval", str(reference), "--episodes", "1", "--backend", "dm_control",
-                                "--actor", "prior")
+                                "--actor", "prior", "--deterministic")  # on this started CPU backend: no change
     assert "checkpoint 2,804 on dm_control with clean, acting with the prior: return " in stdout
     rows = _rows(reference / "evals" / "dm_control-prior-clean-2804.csv")  # seed 0: the name without a seed
     assert len(rows) == 2 and {r["actor"] for r in rows} == {"prior"} and {r["eval_seed"] for r in rows} == {"0"}

@@ -83,14 +83,17 @@ def _train_parser(sub) -> None:
     p.add_argument("--compile-cache", help='XLA compilation cache folder ("" turns it off)')
     p.add_argument("--compile-ahead", choices=("auto", "on", "off"),
                    help="compile the run's programs in parallel before training (default auto: with >= 4 cores)")
-    p.add_argument("--deterministic", action="store_true",
-                   help="compile under XLA's deterministic GPU ops (XLA_FLAGS=--xla_gpu_deterministic_ops=true): "
-                        "two launches of one command side by side on an H100 then replayed each other bit for bit "
-                        "(RESULTS.md [93]); slower there (acrobot recipe: ~300 env steps/s against ~400), no "
-                        "effect on the CPU")
+    _deterministic_option(p, "two launches of one command on an H100 then replayed each other bit for bit, also "
+                             "across machines (RESULTS.md [93], [94]); 1.2-1.3 x the time per step there [94]")
     p.add_argument("--check", action="store_true",
                    help="validate the whole configuration (environments, agent, overrides, resume), print what "
                         "would run, write and compile nothing")
+
+
+def _deterministic_option(p, measured: str) -> None:
+    p.add_argument("--deterministic", action="store_true",
+                   help="compile under XLA's deterministic GPU ops (XLA_FLAGS=--xla_gpu_deterministic_ops=true, set "
+                        f"before JAX starts its backend): {measured}; no effect on the CPU")
 
 
 def _eval_parser(sub) -> None:
@@ -112,6 +115,7 @@ def _eval_parser(sub) -> None:
     p.add_argument("--planner", dest="planner", action="append", metavar="KEY=VALUE", default=[],
                    help="plan with another MPPI setting than the run trained with, repeatable (e.g. --planner "
                         "iterations=12 --planner plan_horizon=5; planner keys only)")
+    _deterministic_option(p, "the evaluation's sums in a fixed order, so that it replays on a GPU")
 
 
 def _video_parser(sub) -> None:
@@ -133,6 +137,7 @@ def _video_parser(sub) -> None:
                    help="with --episodes: keep only the films of episodes whose return ends below this")
     p.add_argument("--actor", default="planner",
                    help="planner (MPPI) or prior (the policy prior alone; default file <run>/videos/<step>-prior.mp4)")
+    _deterministic_option(p, "the planner's sums in a fixed order, so that a film replays on a GPU")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -219,13 +224,26 @@ def run_command(args: argparse.Namespace) -> None:
         run_train(args)
     elif args.command == "recipes":
         sys.stdout.write(describe_recipes())
-    elif args.command == "eval":
+    elif args.command in ("eval", "video"):
+        from lnnmpc.train.setup import enable_deterministic_ops
+
+        enable_deterministic_ops(args.deterministic)  # before anything starts JAX's backend
+        _evaluate_or_film(args)
+    else:
+        from lnnmpc.train.report import write_reports
+
+        write_reports(args.run)
+        sys.stdout.write(f"wrote {os.path.join(args.run, 'summary.md')} and curve.png\n")
+
+
+def _evaluate_or_film(args: argparse.Namespace) -> None:
+    if args.command == "eval":
         os.environ.setdefault("MUJOCO_GL", "disable")  # dm_control needs no OpenGL to step (no GLFW warnings)
         from lnnmpc.train.evaluate import evaluate
 
         evaluate(args.run, obs=args.obs, episodes=args.episodes, backend=args.backend, checkpoint=args.checkpoint,
                  seed=args.seed, out=args.out, actor=args.actor, planner=parse_overrides(args.planner, "--planner"))
-    elif args.command == "video":
+    else:
         os.environ.setdefault("MUJOCO_GL", "egl")  # offscreen OpenGL without a display; before dm_control loads
         from lnnmpc.train.video import record, record_episodes
 
@@ -236,11 +254,6 @@ def run_command(args: argparse.Namespace) -> None:
             record(args.run, **options)
         else:
             record_episodes(args.run, episodes=args.episodes, below=args.falls_below, **options)
-    else:
-        from lnnmpc.train.report import write_reports
-
-        write_reports(args.run)
-        sys.stdout.write(f"wrote {os.path.join(args.run, 'summary.md')} and curve.png\n")
 
 
 def main(argv: list[str] | None = None) -> None:
