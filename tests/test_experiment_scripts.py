@@ -211,3 +211,48 @@ def test_acrobot_divergence_plays_each_start_twice_one_ulp_apart(tmp_path, capsy
     assert script.main(["--starts", "0"]) == 2 and "--starts must be at least 1, not 0" in capsys.readouterr().err
     assert script.first_above(np.array([0.0, 1e-4, 0.2, 0.5]), 1e-3) == 3
     assert script.first_above(np.array([0.0, 1e-4]), 1e-3) is None
+
+
+def test_final_returns_figure_takes_each_runs_last_evaluation_by_line(tmp_path, capsys):
+    """Each run's value is the mean over seeds and episodes of its last evaluation (not of all rows), lines keep
+    their order and their runs' positions; malformed or repeated lines, bad references and a folder without
+    eval.csv are refused naming the item (exit status 2)."""
+    script = _script("final_returns_figure")
+    rows = lambda step, returns: "".join(f"{step},{s},{e},{r}\n" for s, seed in enumerate(returns)
+                                         for e, r in enumerate(seed))
+    runs = {}
+    for name, last in (("a1", [[100.0, 300.0]]), ("a2", [[500.0], [700.0]]), ("b1", [[50.0, 60.0]])):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "eval.csv").write_text("env_step,seed,episode,return\n" + rows(10, [[999.0]]) + rows(20, last))
+        runs[name] = str(folder)
+    out = str(tmp_path / "fig")
+    argv = ["--line", f"second={runs['b1']}", "--line", f"first={runs['a1']},{runs['a2']}", "--bar", "700",
+            "--reference", "TD-MPC2=278.1", "--run-names", "s1,s2", "--out", out]
+    assert script.main(argv) == 0
+    table = list(csv.DictReader(open(f"{out}.csv")))
+    assert [(r["line"], r["position"], r["env_step"], float(r["return"]), float(r["line_mean"])) for r in table] == [
+        ("second", "0", "20", 55.0, 55.0), ("first", "0", "20", 200.0, 400.0), ("first", "1", "20", 600.0, 400.0)]
+    printed = capsys.readouterr().out
+    assert "first: 200.0 / 600.0, mean 400.0" in printed and os.path.getsize(f"{out}.png") > 1000
+    assert script.run_name(1, ["s1", "s2"]) == "s2" and script.run_name(2, ["s1", "s2"]) == "run 3 of each line"
+    for bad, message in (([f"--line=x{runs['a1']}"], "--line takes LABEL=RUN[,RUN...], got 'x"),
+                         (["--line", f"x={runs['a1']}", "--line", f"x={runs['a2']}"], "--line 'x' given twice"),
+                         (["--line", f"x={tmp_path}"], "has no eval.csv"),
+                         (["--line", f"x={runs['a1']}", "--reference", "TD=high"], "--reference takes LABEL=VALUE")):
+        assert script.main([*bad, "--out", out]) == 2 and message in capsys.readouterr().err
+
+
+def test_the_acrobot_levers_figure_regenerates_from_the_committed_runs(tmp_path):
+    """experiments/scripts/acrobot_levers_figure.sh rebuilds the committed figure's CSV byte for byte from the
+    committed runs (their eval.csv), so the figure states what the runs hold (RESULTS.md [94]: the recipe 644.6)."""
+    import subprocess
+    import sys
+
+    committed = os.path.join(ROOT, "experiments", "results", "figures", "acrobot-levers-master-seeds123-200k.csv")
+    env = {**os.environ, "PYTHON": sys.executable, "PYTHONPATH": os.path.join(ROOT, "src")}
+    done = subprocess.run(["bash", "experiments/scripts/acrobot_levers_figure.sh", str(tmp_path / "fig")], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert open(tmp_path / "fig.csv").read() == open(committed).read()
+    assert "every 6 (recipe) [93]: 624.5 / 650.6 / 658.6, mean 644.6" in done.stdout
