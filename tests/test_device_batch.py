@@ -386,7 +386,7 @@ def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp
 
 
 def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
-    """The runs' policy.npz files travel in $OUT/policies.tar, not in results.tar.gz, oldest run first while they
+    """The runs' policy.npz files travel in $OUT/policies.tar, not in results.tar.gz, in name order while they
     keep under POLICY_MIB, then the evaluations' policies; a file that would pass it is left out and named in the
     report, later ones still fit."""
     import subprocess
@@ -414,3 +414,26 @@ def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
     report = (out / "report.txt").read_text()
     assert "policy left out of policies.tar (over POLICY_MIB=1): ./b/policy.npz" in report
     assert report.count("left out") == 1
+
+
+def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
+    """A second start on the same machine packs the policies its runs wrote before those of the earlier start's runs
+    (which the earlier call's policies.tar brought back already): here only one fits, and it is the new run's."""
+    import subprocess
+    import tarfile
+
+    out = tmp_path / "out"
+    out.mkdir()
+    body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; esac; shift; done; '
+            'mkdir -p "$run"; echo rows >"$run/eval.csv"; head -c 600000 /dev/zero >"$run/policy.npz"')
+    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1")
+    for name in ("a-earlier", "z-later"):  # the earlier start's run comes first by name
+        jobs = tmp_path / f"{name}.txt"
+        jobs.write_text(f"{name} --steps 10\n")
+        result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
+                                text=True, timeout=60, env=env, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        with tarfile.open(out / "policies.tar") as tar:
+            assert tar.getnames() == [f"./{name}/policy.npz"]
+    assert "policy left out of policies.tar (over POLICY_MIB=1): ./a-earlier/policy.npz" in (
+        out / "report.txt").read_text()

@@ -167,7 +167,8 @@ print_report() {
 # The report and the run folders (without checkpoints), the logs and nvidia-smi's view packed into $OUT (report.txt,
 # results.tar.gz; each replaced whole), where the device tool fetches them: also after a call cut at its limit.
 # The runs' policy.npz files (the newest checkpoint's parameters, some MB per seed) go apart into policies.tar,
-# which keeps under POLICY_MIB (default 15: the tool returns files of at most 16 MiB); the report names any left out.
+# which keeps under POLICY_MIB (default 15: the tool returns files of at most 16 MiB), the policies written since the
+# latest start first; the report names any left out.
 # Runs trained with --eval-policies add each evaluation's policy (policies/policy-<step>.npz): packed after every
 # run's policy.npz, newest evaluation first, while they fit.
 pack_out() {
@@ -178,8 +179,18 @@ pack_out() {
         && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
 }
 
-# $OUT/policies.tar: every run's policy.npz under $BATCH, oldest run first, then the evaluations' policies (each
-# run's newest first), as many as keep under POLICY_MIB; prints one line per file left out
+# $OUT/policies.tar: every run's policy.npz under $BATCH, those written since the latest start first (a machine that
+# ran an earlier start has returned those runs' policies already), each group in name order, then the evaluations'
+# policies (each run's newest first), as many as keep under POLICY_MIB; prints one line per file left out
+run_policies() {  # the runs' policy.npz paths under $BATCH (relative), in pack_policies' order
+    (cd "$BATCH" && if [ -f started ]; then
+        find . -name policy.npz -not -path '*/checkpoints/*' -newer started | sort
+        find . -name policy.npz -not -path '*/checkpoints/*' ! -newer started | sort
+    else
+        find . -name policy.npz -not -path '*/checkpoints/*' | sort
+    fi)
+}
+
 pack_policies() {
     local budget=$((${POLICY_MIB:-15} * 1048576)) used=0 size file packed=()
     while read -r file; do
@@ -190,8 +201,7 @@ pack_policies() {
         else
             echo "policy left out of policies.tar (over POLICY_MIB=${POLICY_MIB:-15}): $file"
         fi
-    done < <(cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' | sort \
-             && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' \
+    done < <(run_policies && cd "$BATCH" && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' \
                  | awk -F'/policies/policy-' '{ print $1 "\t" ($2 + 0) "\t" $0 }' | sort -t "$(printf '\t')" -k1,1 -k2,2nr \
                  | cut -f3)
     [ ${#packed[@]} -gt 0 ] || return 0
