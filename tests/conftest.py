@@ -72,7 +72,7 @@ gc.set_threshold(*TEST_GC_THRESHOLDS)
 # codegen split 1, the concurrency-optimised scheduler off, copy insertion without region analysis; on
 # test_trainer_run's reference run, LLVM's expensive passes off. An Env's physics is traced once per process
 # (env.py, _traced_once) and build_loop, evaluate and video take their Envs from setup.shared_env, so a file's
-# programs on one task share that trace. Dated suite and per-file timings are in README.md's Development section.
+# programs on one task share that trace. Dated suite and per-file timings are in tests/TIMES.md.
 HEAVY_FILES = ("test_trainer_run.py", "test_lnn_training.py", "test_env_api.py", "test_lnn_losses.py",
                "test_analysis.py", "test_train_loop.py", "test_env_solver.py", "test_env_fast.py", "test_tdmpc2.py",
                "test_cells.py", "test_benchmark_in_scan.py", "test_exploration.py", "test_device_batch.py",
