@@ -182,13 +182,10 @@ pack_out() {
 # $OUT/policies.tar: every run's policy.npz under $BATCH, those written since the latest start first (a machine that
 # ran an earlier start has returned those runs' policies already), each group in name order, then the evaluations'
 # policies (each run's newest first), as many as keep under POLICY_MIB; prints one line per file left out
-run_policies() {  # the runs' policy.npz paths under $BATCH (relative), in pack_policies' order
-    (cd "$BATCH" && if [ -f started ]; then
-        find . -name policy.npz -not -path '*/checkpoints/*' -newer started | sort
-        find . -name policy.npz -not -path '*/checkpoints/*' ! -newer started | sort
-    else
-        find . -name policy.npz -not -path '*/checkpoints/*' | sort
-    fi)
+run_policies() {  # the runs' policy.npz paths under $BATCH (relative), in pack_policies' order; $BATCH/started is
+    # there (pack_out's one caller, report_until, runs after a start)
+    (cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' -newer started | sort \
+        && find . -name policy.npz -not -path '*/checkpoints/*' ! -newer started | sort)
 }
 
 pack_policies() {
