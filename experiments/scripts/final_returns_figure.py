@@ -4,13 +4,13 @@ seeds): where a sweep of levers landed, beside the bar it aims at.
     python experiments/scripts/final_returns_figure.py --line LABEL=RUN[,RUN...] [--line ...] \
         [--bar 700] [--reference LABEL=VALUE ...] [--title TEXT] [--run-names A,B,...] --out PREFIX
 
-A RUN is a run folder (its ``eval.csv``, the trainer's: ``env_step``, ``seed``, ``episode``, ``return``); its
-value is the mean return over every seed and episode of its last evaluation. Lines are drawn in the order given,
-each run as a dot (the k-th run of every line in one colour, named by ``--run-names``: master seed k when each
-line lists its runs by master seed) and the line's mean as a bar, with its value written in it. ``--bar`` draws
-the target as a dashed line, ``--reference`` other levels as dotted ones. Writes ``PREFIX.csv`` (one row per run:
-line, position, run, env_step, return, and the line's mean) and ``PREFIX.png``, and prints each line's runs and
-mean.
+A RUN is a run folder (its ``eval.csv``, the trainer's: ``env_step``, ``seed``, ``episode``, ``return``); its value
+is its last evaluation's mean return over its seeds (each seed's episode mean), as its ``summary.md`` gives it.
+Lines are drawn in the order given, each run as a dot (the k-th run of every line in one colour, named by
+``--run-names``: master seed k when each line lists its runs by master seed) and the line's mean as a bar, with its
+value written in it. ``--bar`` draws the target as a dashed line, ``--reference`` other levels as dotted ones.
+Writes ``PREFIX.csv`` (one row per run: line, position, run, env_step, return, and the line's mean) and
+``PREFIX.png``, and prints each line's runs and mean.
 """
 
 from __future__ import annotations
@@ -24,17 +24,19 @@ import numpy as np
 
 
 def last_evaluation(run: str) -> tuple[int, float]:
-    """(env_step, mean return) of ``run``'s last evaluation in its ``eval.csv``; ValueError naming the run where
-    the file is missing or holds no rows."""
+    """(env_step, mean return) of ``run``'s last evaluation in its ``eval.csv``, the mean as the run's summary gives
+    it (:func:`lnnmpc.train.report.eval_table`); ValueError naming the run where the file is missing or holds no
+    rows."""
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.report import eval_table
+
     path = os.path.join(run, "eval.csv")
     if not os.path.isfile(path):
         raise ValueError(f"{run!r} has no eval.csv")
-    with open(path, newline="") as handle:
-        rows = [(int(row["env_step"]), float(row["return"])) for row in csv.DictReader(handle)]
-    if not rows:
+    table = eval_table(runfolder.read_csv(path))
+    if not table:
         raise ValueError(f"{path!r} holds no evaluation")
-    step = max(s for s, _ in rows)
-    return step, float(np.mean([r for s, r in rows if s == step]))
+    return table[-1]["env_step"], table[-1]["mean"]
 
 
 def parse_lines(items: list[str]) -> dict[str, list[str]]:
