@@ -387,8 +387,8 @@ def test_device_batch_report_keeps_its_deadline_and_packs_out_while_it_waits(tmp
 
 def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
     """The runs' policy.npz files travel in $OUT/policies.tar, not in results.tar.gz, in name order while they
-    keep under POLICY_MIB, then the evaluations' policies; a file that would pass it is left out and named in the
-    report, later ones still fit."""
+    keep under POLICY_MIB, then the evaluations' policies; with one tar (POLICY_TARS=1) a file that would pass it is
+    left out and named in the report, later ones still fit."""
     import subprocess
     import tarfile
 
@@ -398,7 +398,7 @@ def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
             'mkdir -p "$run/checkpoints"; echo rows >"$run/eval.csv"; head -c "$size" /dev/zero >"$run/policy.npz"; '
             'head -c 10 /dev/zero >"$run/checkpoints/policy.npz"; mkdir -p "$run/policies"; '
             'for step in 600 1200; do head -c 100 /dev/zero >"$run/policies/policy-$step.npz"; done')
-    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1")
+    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1", POLICY_TARS="1")
     jobs = tmp_path / "jobs.txt"
     jobs.write_text("a --size 400000\nb --size 800000\nc --size 400000\n")  # a fits, a + b do not, a + c do
     result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
@@ -412,8 +412,61 @@ def test_device_batch_packs_policies_apart_and_under_their_limit(tmp_path):
         names = tar.getnames()
     assert "./a/eval.csv" in names and not [n for n in names if "policy" in n or "checkpoints" in n]
     report = (out / "report.txt").read_text()
-    assert "policy left out of policies.tar (over POLICY_MIB=1): ./b/policy.npz" in report
+    assert "policy left out (over POLICY_TARS=1 tars of POLICY_MIB=1): ./b/policy.npz" in report
     assert report.count("left out") == 1
+    assert not (out / "policies-2.tar").exists()
+
+
+def test_device_batch_fills_further_policies_tars_and_removes_an_empty_one(tmp_path):
+    """With POLICY_TARS=3 each policy goes into the first tar it keeps under POLICY_MIB: policies.tar, then
+    policies-2.tar ...; one that fits none is left out. A later pack that fills fewer tars removes those left empty
+    from $OUT (the device tool would bring back a stale one)."""
+    import subprocess
+    import tarfile
+
+    out = tmp_path / "out"
+    out.mkdir()
+    body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; --size) size=$2;; esac; shift; done; '
+            'mkdir -p "$run"; echo rows >"$run/eval.csv"; head -c "$size" /dev/zero >"$run/policy.npz"')
+    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1", POLICY_TARS="3")
+    jobs = tmp_path / "jobs.txt"
+    # 1 MiB each: a -> 1, b -> 2, c -> 1 (a + c fit), d -> 3 would fit alone, e fits nowhere left
+    jobs.write_text("a --size 400000\nb --size 800000\nc --size 400000\nd --size 1000000\ne --size 300000\n")
+    result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
+                            text=True, timeout=60, env=env, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    names = {}
+    for tar_name in ("policies.tar", "policies-2.tar", "policies-3.tar"):
+        with tarfile.open(out / tar_name) as tar:
+            names[tar_name] = tar.getnames()
+    assert names == {"policies.tar": ["./a/policy.npz", "./c/policy.npz"], "policies-2.tar": ["./b/policy.npz"],
+                     "policies-3.tar": ["./d/policy.npz"]}
+    report = (out / "report.txt").read_text()
+    assert "policy left out (over POLICY_TARS=3 tars of POLICY_MIB=1): ./e/policy.npz" in report
+    body_small = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; esac; shift; done; '
+                  'mkdir -p "$run"; echo rows >"$run/eval.csv"; head -c 1000 /dev/zero >"$run/policy.npz"')
+    (tmp_path / "second").mkdir()
+    env = _fake_gpu_machine(tmp_path / "second", 1, body_small, OUT=str(out), POLICY_MIB="1", POLICY_TARS="3")
+    (tmp_path / "second" / "jobs.txt").write_text("f --steps 10\n")
+    result = subprocess.run(["bash", DEVICE_BATCH, "start", str(tmp_path / "second" / "jobs.txt"), "60", "30"],
+                            capture_output=True, text=True, timeout=60, env=env, cwd=tmp_path / "second")
+    assert result.returncode == 0, result.stderr
+    with tarfile.open(out / "policies.tar") as tar:  # another machine's batch folder: one small policy
+        assert tar.getnames() == ["./f/policy.npz"]
+    assert not (out / "policies-2.tar").exists() and not (out / "policies-3.tar").exists()
+
+
+def test_device_batch_refuses_a_policies_tar_count_the_tool_cannot_return(tmp_path):
+    """POLICY_TARS must leave room for report.txt and results.tar.gz among the 8 files the device tool returns."""
+    import subprocess
+
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("a --steps 10\n")
+    for bad in ("0", "7", "two"):
+        result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
+                                text=True, timeout=60, env={**os.environ, "POLICY_TARS": bad}, cwd=tmp_path)
+        assert result.returncode == 2
+        assert f"POLICY_TARS={bad} must be 1 to 6" in result.stderr
 
 
 def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
@@ -426,7 +479,7 @@ def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
     out.mkdir()
     body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; esac; shift; done; '
             'mkdir -p "$run"; echo rows >"$run/eval.csv"; head -c 600000 /dev/zero >"$run/policy.npz"')
-    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1")
+    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1", POLICY_TARS="1")
     for name in ("a-earlier", "z-later"):  # the earlier start's run comes first by name
         jobs = tmp_path / f"{name}.txt"
         jobs.write_text(f"{name} --steps 10\n")
@@ -435,5 +488,5 @@ def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
         assert result.returncode == 0, result.stderr
         with tarfile.open(out / "policies.tar") as tar:
             assert tar.getnames() == [f"./{name}/policy.npz"]
-    assert "policy left out of policies.tar (over POLICY_MIB=1): ./a-earlier/policy.npz" in (
+    assert "policy left out (over POLICY_TARS=1 tars of POLICY_MIB=1): ./a-earlier/policy.npz" in (
         out / "report.txt").read_text()

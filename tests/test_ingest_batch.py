@@ -172,3 +172,38 @@ def test_throughput_ab_runs_each_snapshot_with_its_own_package(tmp_path):
     result = subprocess.run(["bash", script, "run9"], cwd=tmp_path, env={**env, "VERSIONS": "new"},
                             capture_output=True, text=True, timeout=60)
     assert result.returncode == 1 and "runs/gpu-new holds no snapshot" in result.stderr
+
+
+def test_ingest_batch_unpacks_every_policies_tar(tmp_path):
+    """Where device_batch.sh filled policies.tar and went on into policies-2.tar, both are unpacked beside the run:
+    the staged run holds the policies of each, and the output counts each tar's files."""
+    import subprocess
+    import tarfile
+
+    batch = tmp_path / "batch"
+    run = batch / "acro"
+    (run / "policies").mkdir(parents=True)
+    (run / "config.json").write_text("{}")
+    with tarfile.open(tmp_path / "results.tar.gz", "w:gz") as tar:
+        tar.add(batch, arcname=".")
+    parts = {"policies.tar": {"policy.npz": b"final", "policies/policy-1200.npz": b"at 1200"},
+             "policies-2.tar": {"policies/policy-600.npz": b"at 600"}}
+    for name, files in parts.items():
+        with tarfile.open(tmp_path / name, "w") as tar:
+            for rel, data in files.items():
+                (run / rel).write_bytes(data)
+                tar.add(run / rel, arcname=f"./acro/{rel}")
+                (run / rel).unlink()
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "ingest_batch.sh")
+    work = tmp_path / "work"
+    work.mkdir()
+    result = subprocess.run(["bash", script, str(tmp_path / "results.tar.gz")], cwd=work, timeout=120,
+                            env={**os.environ, "PYTHON": "true"}, capture_output=True, text=True)  # no tables
+    assert result.returncode == 0, result.stderr
+    staged = work / "runs" / "ingested" / "acro"
+    assert (staged / "policy.npz").read_bytes() == b"final"
+    assert (staged / "policies" / "policy-1200.npz").read_bytes() == b"at 1200"
+    assert (staged / "policies" / "policy-600.npz").read_bytes() == b"at 600"
+    assert f"policies 1 policy.npz from {tmp_path / 'policies.tar'}" in result.stdout
+    assert f"policies 0 policy.npz from {tmp_path / 'policies-2.tar'}" in result.stdout
+    assert result.stdout.count("1 evaluations' policies") == 2

@@ -35,7 +35,8 @@
 # Each report prints every run's progress line (and, for a job that has ended, its exit status and its wall seconds
 # from launch to exit, kept in runs/batch/NAME.seconds) and packs the run folders without checkpoints, the logs and
 # nvidia-smi's view into $OUT/results.tar.gz (the device tool returns at most 8 files), the runs' policy.npz files
-# (their parameters, for `eval` and `video` back here) into $OUT/policies.tar and itself into $OUT/report.txt.
+# (their parameters, for `eval` and `video` back here) into $OUT/policies.tar (policies-2.tar ... when one is full)
+# and itself into $OUT/report.txt.
 # All are also packed every SNAPSHOT_EVERY seconds (default 60) while the report waits: a call stopped at its
 # limit kills the command with its pipeline (a `| tail` returns nothing) but still returns what is under $OUT.
 # Keep REPORT some 30 s under the call's limit (the install before it takes ~10 s).
@@ -50,6 +51,10 @@ BATCH=runs/batch
 SCRIPTS=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 action=${1:?start, wait, extend, after or check}
 shift
+case ${POLICY_TARS:-3} in  # report.txt, results.tar.gz and the policies' tars: at most 8 files come back
+    [1-6]) ;;
+    *) echo "POLICY_TARS=${POLICY_TARS} must be 1 to 6 (the device tool returns at most 8 files)" >&2; exit 2 ;;
+esac
 
 job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines)
     grep -v -E '^\s*(#|$)' "$1"
@@ -166,9 +171,10 @@ print_report() {
 
 # The report and the run folders (without checkpoints), the logs and nvidia-smi's view packed into $OUT (report.txt,
 # results.tar.gz; each replaced whole), where the device tool fetches them: also after a call cut at its limit.
-# The runs' policy.npz files (the newest checkpoint's parameters, some MB per seed) go apart into policies.tar,
-# which keeps under POLICY_MIB (default 15: the tool returns files of at most 16 MiB), the policies written since the
-# latest start first; the report names any left out.
+# The runs' policy.npz files (the newest checkpoint's parameters, some MB per seed) go apart into policies.tar and,
+# when it is full, policies-2.tar ... policies-<POLICY_TARS>.tar (default 3), each under POLICY_MIB (default 15: the
+# tool returns files of at most 16 MiB, 8 files and 64 MiB in all), the policies written since the latest start
+# first; the report names any left out.
 # Runs trained with --eval-policies add each evaluation's policy (policies/policy-<step>.npz): packed after every
 # run's policy.npz, newest evaluation first, while they fit.
 pack_out() {
@@ -179,9 +185,10 @@ pack_out() {
         && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
 }
 
-# $OUT/policies.tar: every run's policy.npz under $BATCH, those written since the latest start first (a machine that
-# ran an earlier start has returned those runs' policies already), each group in name order, then the evaluations'
-# policies (each run's newest first), as many as keep under POLICY_MIB; prints one line per file left out
+# $OUT/policies.tar (then policies-2.tar ...): every run's policy.npz under $BATCH, those written since the latest
+# start first (a machine that ran an earlier start has returned those runs' policies already), each group in name
+# order, then the evaluations' policies (each run's newest first); each file goes into the first tar it keeps under
+# POLICY_MIB, else it is left out; prints one line per file left out. A tar left empty is removed from $OUT.
 run_policies() {  # the runs' policy.npz paths under $BATCH (relative), in pack_policies' order; $BATCH/started is
     # there (pack_out's one caller, report_until, runs after a start)
     (cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' -newer started | sort \
@@ -189,20 +196,37 @@ run_policies() {  # the runs' policy.npz paths under $BATCH (relative), in pack_
 }
 
 pack_policies() {
-    local budget=$((${POLICY_MIB:-15} * 1048576)) used=0 size file packed=()
+    local budget=$((${POLICY_MIB:-15} * 1048576)) tars=${POLICY_TARS:-3} size file i name placed
+    local -a used=() assigned=() packed=()
+    for ((i = 0; i < tars; i++)); do used[i]=0; done
     while read -r file; do
         size=$(stat -c %s "$BATCH/$file")
-        if [ $((used + size)) -le "$budget" ]; then
-            packed+=("$file")
-            used=$((used + size))
-        else
-            echo "policy left out of policies.tar (over POLICY_MIB=${POLICY_MIB:-15}): $file"
-        fi
+        placed=
+        for ((i = 0; i < tars; i++)); do
+            if [ $((used[i] + size)) -le "$budget" ]; then
+                used[i]=$((used[i] + size))
+                assigned+=("$i $file")
+                placed=1
+                break
+            fi
+        done
+        [ -n "$placed" ] || echo "policy left out (over POLICY_TARS=$tars tars of POLICY_MIB=${POLICY_MIB:-15}): $file"
     done < <(run_policies && cd "$BATCH" && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' \
                  | awk -F'/policies/policy-' '{ print $1 "\t" ($2 + 0) "\t" $0 }' | sort -t "$(printf '\t')" -k1,1 -k2,2nr \
                  | cut -f3)
-    [ ${#packed[@]} -gt 0 ] || return 0
-    tar cf "$OUT/.policies.tar" -C "$BATCH" "${packed[@]}" && mv "$OUT/.policies.tar" "$OUT/policies.tar"
+    for ((i = 0; i < tars; i++)); do
+        name=policies.tar
+        [ "$i" -eq 0 ] || name=policies-$((i + 1)).tar
+        packed=()
+        for file in "${assigned[@]}"; do
+            [ "${file%% *}" = "$i" ] && packed+=("${file#* }")
+        done
+        if [ ${#packed[@]} -eq 0 ]; then
+            rm -f "$OUT/$name"
+            continue
+        fi
+        tar cf "$OUT/.$name" -C "$BATCH" "${packed[@]}" && mv "$OUT/.$name" "$OUT/$name"
+    done
 }
 
 # Wait until the epoch second DEADLINE or until no run is left, packing $OUT every SNAPSHOT_EVERY seconds (default

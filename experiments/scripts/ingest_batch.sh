@@ -4,8 +4,8 @@
 #   experiments/scripts/ingest_batch.sh RESULTS_TAR_GZ
 #
 # A policies.tar beside RESULTS_TAR_GZ (the runs' policy.npz files and any evaluations' policies/, packed apart by
-# device_batch.sh) is unpacked over the run folders first, so each filed run keeps its trained policy (git ignores
-# policy.npz and policies/policy-*.npz);
+# device_batch.sh), and policies-2.tar ... where one was full, are unpacked over the run folders first, so each filed
+# run keeps its trained policy (git ignores policy.npz and policies/policy-*.npz);
 # - every study run folder of the batch (runs/batch/experiments/<task>/<agent>/<condition>, no checkpoints) is
 #   copied into experiments/results/study-runs/, the runs-dir the committed study tables are built from (but
 #   Figure 5.19's: experiments/results/study-runs-fig5_19-h100/). A newer copy of a run replaces the older one,
@@ -21,7 +21,7 @@
 #   runs/ingested/<name>, git-ignored), to be filed by hand with a README; their tables (`lnnmpc.train.tables`:
 #   every evaluation and the speed) are printed for it. A run that an earlier batch of the same warm machine
 #   brought back already (the same config.json) keeps the policy files staged then that this batch's
-#   policies.tar left out (over device_batch.sh's POLICY_MIB).
+#   policies' tars left out (over device_batch.sh's POLICY_TARS x POLICY_MIB).
 # $PYTHON picks the interpreter (default .venv/bin/python). Commit what it wrote right after.
 set -eu
 tarball=${1:?usage: ingest_batch.sh RESULTS_TAR_GZ}
@@ -44,18 +44,18 @@ keep_policies() {  # OLD NEW: OLD's policy files that NEW lacks, moved into NEW 
         [ -f "$file" ] && [ ! -f "$2/$rel" ] || continue
         mkdir -p "$(dirname "$2/$rel")"
         mv "$file" "$2/$rel"
-        echo "kept     $1/$rel (this run's, filed before; the batch's policies.tar lacks it)"
+        echo "kept     $1/$rel (this run's, filed before; the batch's policies' tars lack it)"
     done
 }
 trap 'rm -rf "$tmp"' EXIT
 tar -xzf "$tarball" -C "$tmp"
-policies="$(dirname "$tarball")/policies.tar"
-if [ -f "$policies" ]; then
+for policies in "$(dirname "$tarball")"/policies.tar "$(dirname "$tarball")"/policies-[0-9]*.tar; do
+    [ -f "$policies" ] || continue
     tar -xf "$policies" -C "$tmp"
-    echo "policies $(tar -tf "$policies" | grep -c 'policy[.]npz$') policy.npz from $policies"
+    echo "policies $(tar -tf "$policies" | grep -c '/policy[.]npz$' || true) policy.npz from $policies"
     snapshots=$(tar -tf "$policies" | grep -c '/policies/policy-[0-9]*[.]npz$' || true)
     [ "$snapshots" -eq 0 ] || echo "         $snapshots evaluations' policies (policies/policy-<step>.npz)"
-fi
+done
 mkdir -p "$runs"
 if [ -d "$tmp/experiments" ]; then
     for run in "$tmp"/experiments/*/*/*/; do
