@@ -16,7 +16,6 @@ Writes ``PREFIX.csv`` (one row per run: line, position, run, env_step, return, a
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import sys
 
@@ -132,11 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as error:
         print(f"final_returns_figure: {error}", file=sys.stderr)
         return 2
-    with open(f"{args.out}.csv", "w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows({**row, "return": f"{row['return']:.4f}", "line_mean": f"{row['line_mean']:.4f}"}
-                         for row in rows)
+    from lnnmpc.train import runfolder
+
+    runfolder.write_csv(f"{args.out}.csv", list(rows[0]),
+                        [{**row, "return": f"{row['return']:.4f}", "line_mean": f"{row['line_mean']:.4f}"}
+                         for row in rows])
     plot(rows, args.bar, references, args.title, f"{args.out}.png",
          [name for name in args.run_names.split(",") if name])
     for label in dict.fromkeys(row["line"] for row in rows):
