@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import platform
@@ -10,6 +11,7 @@ import statistics
 import time
 
 import jax
+import numpy as np
 
 from lnnmpc.train.provenance import git_state, software_versions
 
@@ -42,6 +44,20 @@ def time_call(fn, *args, repeats: int = 5) -> dict:
         jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
     return {"median_s": statistics.median(times), "min_s": min(times), "times_s": times, "first_call_s": first}
+
+
+def tree_digest(tree) -> str:
+    """SHA-256 (hex) of every leaf's dtype, shape and bytes, in ``jax.tree`` order (typed PRNG keys by their key
+    data): equal digests mean bit-identical pytrees, e.g. the output of one program compiled under two sets of
+    XLA flags, which must compute the same numbers."""
+    digest = hashlib.sha256()
+    for leaf in jax.tree.leaves(tree):
+        if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
+            leaf = jax.random.key_data(leaf)
+        array = np.ascontiguousarray(np.asarray(leaf))
+        digest.update(f"{array.dtype.str}{array.shape}".encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
 
 
 def compiled_gflop(compiled) -> float | None:

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from common import compiled_gflop, default_out, environment_info, time_call, write_json  # noqa: E402
+from common import compiled_gflop, default_out, environment_info, time_call, tree_digest, write_json  # noqa: E402
 
 from lnnmpc import envs as envs_lib  # noqa: E402
 from lnnmpc.agents.registry import make_agent  # noqa: E402
@@ -181,13 +181,16 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
 
 def time_chunk(loop: TrainingLoop, ts, seeds: int, envs: int, iterations: int, repeats: int) -> dict:
     """The training chunk of ``iterations`` (act -> env step -> insert -> update) over every seed: its median
-    seconds, environment steps per second summed over seeds, ms per iteration and first call (compilation)."""
+    seconds, environment steps per second summed over seeds, ms per iteration, first call (compilation), and
+    ``chunk_digest``, :func:`common.tree_digest` of the chunk's output state (the same input every call, so two runs
+    whose digests match computed the same numbers, e.g. under other ``XLA_FLAGS``)."""
     train = jax.jit(jax.vmap(loop.train_chunk, in_axes=(0, None)), static_argnums=1)
     chunk_t = time_call(train, ts, iterations, repeats=repeats)
     env_steps = seeds * iterations * envs * loop.env.action_repeat
     return {"chunk_iterations": iterations, "chunk_s": chunk_t["median_s"],
             "chunk_env_steps_per_s": env_steps / chunk_t["median_s"],
-            "ms_per_iteration": 1e3 * chunk_t["median_s"] / iterations, "compile_chunk_s": chunk_t["first_call_s"]}
+            "ms_per_iteration": 1e3 * chunk_t["median_s"] / iterations, "compile_chunk_s": chunk_t["first_call_s"],
+            "chunk_digest": tree_digest(train(ts, iterations))}
 
 
 def main(argv=None):
