@@ -48,8 +48,8 @@ def time_call(fn, *args, repeats: int = 5) -> dict:
 
 def tree_digest(tree) -> str:
     """SHA-256 (hex) of every leaf's dtype, shape and bytes, in ``jax.tree`` order (typed PRNG keys by their key
-    data): equal digests mean bit-identical pytrees, e.g. the output of one program compiled under two sets of
-    XLA flags, which must compute the same numbers."""
+    data): equal digests mean bit-identical pytrees (e.g. a program's output in two processes; on a GPU only under
+    deterministic ops, see ``train_throughput.time_chunk``)."""
     digest = hashlib.sha256()
     for leaf in jax.tree.leaves(tree):
         if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
