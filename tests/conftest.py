@@ -73,11 +73,11 @@ gc.set_threshold(*TEST_GC_THRESHOLDS)
 # test_trainer_run's reference run, LLVM's expensive passes off. An Env's physics is traced once per process
 # (env.py, _traced_once) and build_loop, evaluate and video take their Envs from setup.shared_env, so a file's
 # programs on one task share that trace. Dated suite and per-file timings are in tests/TIMES.md.
-HEAVY_FILES = ("test_trainer_run.py", "test_lnn_training.py", "test_env_api.py", "test_lnn_losses.py",
-               "test_analysis.py", "test_train_loop.py", "test_env_solver.py", "test_env_fast.py", "test_tdmpc2.py",
-               "test_cells.py", "test_benchmark_in_scan.py", "test_exploration.py", "test_device_batch.py",
-               "test_env_parity.py", "test_trainer_config.py", "test_env_corruptions.py", "test_actor.py",
-               "test_lnn_agents.py", "test_tdmpc2_model.py")
+HEAVY_FILES = ("test_trainer_run.py", "test_lnn_training.py", "test_env_api.py", "test_experiment_scripts.py",
+               "test_lnn_losses.py", "test_analysis.py", "test_train_loop.py", "test_env_solver.py", "test_env_fast.py",
+               "test_tdmpc2.py", "test_cells.py", "test_benchmark_in_scan.py", "test_exploration.py",
+               "test_device_batch.py", "test_env_parity.py", "test_trainer_config.py", "test_env_corruptions.py",
+               "test_actor.py", "test_lnn_agents.py", "test_tdmpc2_model.py")
 
 
 def pytest_configure(config):
