@@ -1,5 +1,5 @@
 """benchmarks/common.py's ``tree_digest``: the fingerprint ``train_throughput.py`` records of a training chunk's
-output, to show that two runs (e.g. under other XLA flags) computed the same numbers."""
+output, to show whether two runs computed the same numbers (on a GPU, runs under deterministic ops: run 34)."""
 
 import os
 import sys
