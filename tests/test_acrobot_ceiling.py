@@ -1,5 +1,6 @@
-"""``lnnmpc.analysis.acrobot_ceiling``: the acrobot's closed-form dynamics against MuJoCo's own steps of dm_control's
-model (C, float64), its reward against dm_control's task, the energy against MuJoCo's, and the planner."""
+"""``lnnmpc.analysis.acrobot_physics`` and ``acrobot_ceiling``: the acrobot's closed-form dynamics against MuJoCo's own
+steps of dm_control's model (C, float64), its reward against dm_control's task, the energy against MuJoCo's, and the
+planner."""
 
 import jax
 import jax.numpy as jnp
@@ -8,6 +9,7 @@ import numpy as np
 import pytest
 
 from lnnmpc.analysis import acrobot_ceiling as ac
+from lnnmpc.analysis import acrobot_physics as phys
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +19,7 @@ def dm_env():
 
 @pytest.fixture(scope="module")
 def params(dm_env):
-    return ac.params_from_model(dm_env.physics.model.ptr)
+    return phys.params_from_model(dm_env.physics.model.ptr)
 
 
 def _x64(fn, *args):
@@ -32,16 +34,17 @@ def test_dynamics_match_mujoco_rk4_steps_of_dm_controls_model(dm_env, params):
         qpos, qvel, ctrl = rng.uniform(-np.pi, np.pi, 2), rng.normal(0, 3, 2), rng.uniform(-1.5, 1.5)
         data.qpos[:], data.qvel[:], data.ctrl[:] = qpos, qvel, ctrl
         mujoco.mj_forward(model, data)
-        np.testing.assert_allclose(_x64(lambda q, v, u=ctrl: ac.acrobot_accel(params, q, v, u), qpos, qvel), data.qacc,
-                                   rtol=0, atol=1e-10)  # the control beyond [-1, 1] clipped as the actuator's range
+        # (the control beyond [-1, 1] clipped as the actuator's range)
+        accel = _x64(lambda q, v, u=ctrl: phys.acrobot_accel(params, q, v, u), qpos, qvel)
+        np.testing.assert_allclose(accel, data.qacc, rtol=0, atol=1e-10)
         assert model.opt.enableflags & mujoco.mjtEnableBit.mjENBL_ENERGY  # dm_control's XML asks MuJoCo for it
         mujoco_energy = data.energy.sum() - params.g * (params.m1 + params.m2) * data.xpos[1, 2]  # zero: shoulder
-        assert _x64(lambda q, v: ac.mechanical_energy(params, q, v), qpos, qvel) == pytest.approx(mujoco_energy,
+        assert _x64(lambda q, v: phys.mechanical_energy(params, q, v), qpos, qvel) == pytest.approx(mujoco_energy,
                                                                                                   abs=1e-9)
         q, v = qpos, qvel
         for _ in range(30):
             mujoco.mj_step(model, data)
-            q, v = _x64(lambda a, b, u=ctrl: jnp.stack(ac.rk4_step(params, a, b, u)), q, v)
+            q, v = _x64(lambda a, b, u=ctrl: jnp.stack(phys.rk4_step(params, a, b, u)), q, v)
         np.testing.assert_allclose(q, data.qpos, rtol=0, atol=1e-11)
         np.testing.assert_allclose(v, data.qvel, rtol=0, atol=1e-10)
 
@@ -52,10 +55,10 @@ def test_reward_matches_dm_controls_task_and_energy_bounds_are_the_rest_states(d
     for qpos in [np.zeros(2), np.array([np.pi, 0.0]), np.array([0.15, -0.2]), *rng.uniform(-np.pi, np.pi, (5, 2))]:
         with physics.reset_context():
             physics.data.qpos[:] = qpos
-        assert _x64(lambda q: ac.tip_reward(params, q), qpos) == pytest.approx(dm_env.task.get_reward(physics),
+        assert _x64(lambda q: phys.tip_reward(params, q), qpos) == pytest.approx(dm_env.task.get_reward(physics),
                                                                                 abs=1e-14)
     down, up = ac.energy_bounds(params)
-    assert down == pytest.approx(_x64(lambda q, v: ac.mechanical_energy(params, q, v), np.array([np.pi, 0.0]),
+    assert down == pytest.approx(_x64(lambda q, v: phys.mechanical_energy(params, q, v), np.array([np.pi, 0.0]),
                                       np.zeros(2)), abs=1e-12)
     assert up == pytest.approx(-down) and up > 0
 

@@ -10,7 +10,7 @@ their starts as much as with the policy. This analysis recomputes the initial jo
 training-time evaluation played (from the trainer's evaluation keys, :func:`trainer_evaluation_key`) and of clean
 ``cli eval`` CSVs of its policy (``--with``, MJX or dm_control: derived from the CSV's ``eval_seed``; with
 ``--without-training`` only these are fitted), computes each start's mechanical energy
-(:func:`lnnmpc.analysis.acrobot_ceiling.mechanical_energy`, 0 at the shoulder's height, 19.6 J upright at rest), and
+(:func:`lnnmpc.analysis.acrobot_physics.mechanical_energy`, 0 at the shoulder's height, 19.6 J upright at rest), and
 fits each policy's returns on the energy by least squares. The policy's **adjusted** mean is the fitted line at the
 mean energy of ``--population`` starts drawn from the environment's own initial-state distribution: the expected
 return over that distribution, with its standard error from the fit (:func:`adjusted_mean`). A run's policy is its
@@ -74,7 +74,7 @@ def rest_energy(env, qpos: np.ndarray) -> np.ndarray:
     """Mechanical energy (J) of the acrobot at rest at joint positions ``qpos`` (..., 2), float64."""
     import jax
 
-    from lnnmpc.analysis.acrobot_ceiling import mechanical_energy, params_from_model
+    from lnnmpc.analysis.acrobot_physics import mechanical_energy, params_from_model
 
     with jax.enable_x64(True):
         q = np.asarray(qpos, np.float64)

@@ -9,7 +9,7 @@ motion: 559.2 on dm_control's evaluation starts 0-9, while a learned policy scor
 planner got 713. A planner that looks 2 s ahead cannot see when a slower swing now pays later. This module looks
 at the whole episode instead: iterative LQR (iLQR, control-limited, Levenberg-Marquardt regularised) over all
 ``1000 / action_repeat`` agent steps from the start, maximising the sum of dm_control's rewards (the tip's
-``tolerance``) computed on :mod:`lnnmpc.analysis.acrobot_ceiling`'s closed-form dynamics in float64. The reward is
+``tolerance``) computed on :mod:`lnnmpc.analysis.acrobot_physics`'s closed-form dynamics in float64. The reward is
 ~1e-14 with the chain hanging down, so the first stages add the planner's energy and tip-height shaping and later
 stages anneal it to zero (:data:`STAGES`); ``--restarts`` random smooth initial action sequences per start (the
 first all zeros), the best kept by the true return. The solution is then played in dm_control itself as a policy:
@@ -33,7 +33,9 @@ from typing import NamedTuple
 import numpy as np
 
 from lnnmpc.analysis import acrobot_ceiling as ceiling
-from lnnmpc.analysis.acrobot_ceiling import EPISODE_STEPS, AcrobotParams, PlannerConfig
+from lnnmpc.analysis import acrobot_physics as physics
+from lnnmpc.analysis.acrobot_ceiling import PlannerConfig
+from lnnmpc.analysis.acrobot_physics import EPISODE_STEPS, AcrobotParams
 
 # (energy_weight, height_weight) of each stage, run one after the other for ``iterations`` iLQR iterations each:
 # shaping pumps energy where the reward ranks nothing, the last stages optimise dm_control's reward alone.
@@ -84,10 +86,10 @@ def acrobot_problem(p: AcrobotParams, repeat: int, energy_weight: float, height_
 
     def substeps(x, u):
         def control_step(state, _):
-            q, v = ceiling.rk4_step(p, state[:2], state[2:], u)
+            q, v = physics.rk4_step(p, state[:2], state[2:], u)
             nxt = jnp.concatenate([q, v])
             closeness, height = ceiling.shaping_terms(p, q, v)
-            return nxt, (ceiling.tip_reward(p, q), closeness, height)
+            return nxt, (physics.tip_reward(p, q), closeness, height)
 
         return jax.lax.scan(control_step, x, None, length=repeat)
 
@@ -244,7 +246,7 @@ def mppi_controls(p: AcrobotParams, planner: PlannerConfig, starts, seed: int = 
             x, mean = carry
             u, mean = ceiling.plan_and_shift(p, planner, x[:2], x[2:], mean, key)
             for _ in range(planner.action_repeat):
-                q, v = ceiling.rk4_step(p, x[:2], x[2:], u)
+                q, v = physics.rk4_step(p, x[:2], x[2:], u)
                 x = jnp.concatenate([q, v])
             return (x, mean), (u, x)
 
@@ -350,7 +352,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     jax.config.update("jax_enable_x64", True)
     episodes = list(range(args.first_episode, args.first_episode + args.episodes))
     envs = ceiling.dm_control_envs(episodes)
-    p = ceiling.params_from_model(envs[0].physics.model.ptr)
+    p = physics.params_from_model(envs[0].physics.model.ptr)
     starts = np.stack([np.concatenate([env.physics.data.qpos, env.physics.data.qvel]) for env in envs])
     steps = EPISODE_STEPS // config.action_repeat
     began = time.time()
