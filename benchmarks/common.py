@@ -13,6 +13,7 @@ import time
 import jax
 import numpy as np
 
+from lnnmpc.train.checkpoint import keys_as_data
 from lnnmpc.train.provenance import git_state, software_versions
 
 
@@ -48,12 +49,10 @@ def time_call(fn, *args, repeats: int = 5) -> dict:
 
 def tree_digest(tree) -> str:
     """SHA-256 (hex) of every leaf's dtype, shape and bytes, in ``jax.tree`` order (typed PRNG keys by their key
-    data): equal digests mean bit-identical pytrees (e.g. a program's output in two processes; on a GPU only under
-    deterministic ops, see ``train_throughput.time_chunk``)."""
+    data, as ``checkpoint.keys_as_data`` gives them): equal digests mean bit-identical pytrees (e.g. a program's
+    output in two processes; on a GPU only under deterministic ops, see ``train_throughput.time_chunk``)."""
     digest = hashlib.sha256()
-    for leaf in jax.tree.leaves(tree):
-        if jax.dtypes.issubdtype(getattr(leaf, "dtype", None), jax.dtypes.prng_key):
-            leaf = jax.random.key_data(leaf)
+    for leaf in jax.tree.leaves(keys_as_data(tree)):
         array = np.ascontiguousarray(np.asarray(leaf))
         digest.update(f"{array.dtype.str}{array.shape}".encode())
         digest.update(array.tobytes())

@@ -23,12 +23,14 @@ def _is_key(x: Any) -> bool:
     return isinstance(x, jax.Array | jax.ShapeDtypeStruct) and jnp.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
-def _to_raw(tree: Any) -> Any:
+def keys_as_data(tree: Any) -> Any:
+    """``tree`` with every typed PRNG key replaced by its raw key data (uint32), as checkpoints store keys; other
+    leaves as they are."""
     return jax.tree_util.tree_map(lambda x: jax.random.key_data(x) if _is_key(x) else x, tree)
 
 
 def _raw_abstract(x: Any) -> Any:
-    """A restore target's leaf (array or abstract) as :func:`_to_raw` stores it: for a key, its data's shape and
+    """A restore target's leaf (array or abstract) as :func:`keys_as_data` stores it: for a key, its data's shape and
     dtype with the key's sharding; any other leaf as it is."""
     if not _is_key(x):
         return x
@@ -70,7 +72,7 @@ def save_checkpoint(run: str, step: int, state: Any, host: dict, keep: int = 2) 
     """Saves ``state`` (any pytree of arrays, PRNG keys allowed) and ``host`` (JSON-able) as checkpoint ``step``;
     keeps the newest ``keep`` checkpoints."""
     with _manager(run, keep) as manager:
-        manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(_payload(_to_raw(state))),
+        manager.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(_payload(keys_as_data(state))),
                                                    host=ocp.args.JsonSave(host)))
         manager.wait_until_finished()
 
