@@ -34,17 +34,20 @@ def environment_info() -> dict:
     }
 
 
-def time_call(fn, *args, repeats: int = 5) -> dict:
-    """Compiles/warms ``fn`` once, then times ``repeats`` calls; seconds, median first."""
+def time_call(fn, *args, repeats: int = 5, keep_output: bool = False) -> dict:
+    """Compiles/warms ``fn`` once, then times ``repeats`` calls; seconds, median first. With ``keep_output`` the
+    last call's result is returned too (``output``), for a caller that also needs what the call computed."""
     start = time.perf_counter()
-    jax.block_until_ready(fn(*args))
+    out = jax.block_until_ready(fn(*args))
     first = time.perf_counter() - start
     times = []
     for _ in range(repeats):
+        out = None  # the previous result freed before the next call
         start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
+        out = jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - start)
-    return {"median_s": statistics.median(times), "min_s": min(times), "times_s": times, "first_call_s": first}
+    timing = {"median_s": statistics.median(times), "min_s": min(times), "times_s": times, "first_call_s": first}
+    return {**timing, "output": out} if keep_output else timing
 
 
 def tree_digest(tree) -> str:

@@ -182,16 +182,16 @@ def measure(task: str, seeds: int, envs: int, args) -> dict:
 def time_chunk(loop: TrainingLoop, ts, seeds: int, envs: int, iterations: int, repeats: int) -> dict:
     """The training chunk of ``iterations`` (act -> env step -> insert -> update) over every seed: its median
     seconds, environment steps per second summed over seeds, ms per iteration, first call (compilation), and
-    ``chunk_digest``, :func:`common.tree_digest` of the chunk's output state (the same input every call). On a GPU
-    two processes agree only under ``XLA_FLAGS=--xla_gpu_deterministic_ops=true``: without it the same program's
-    sums vary in round-off (run 34), so compare digests of runs made under that flag."""
+    ``chunk_digest``, :func:`common.tree_digest` of the last timed call's output state (the same input every
+    call). On a GPU two processes agree only under ``XLA_FLAGS=--xla_gpu_deterministic_ops=true``: without it the
+    same program's sums vary in round-off (run 34), so compare digests of runs made under that flag."""
     train = jax.jit(jax.vmap(loop.train_chunk, in_axes=(0, None)), static_argnums=1)
-    chunk_t = time_call(train, ts, iterations, repeats=repeats)
+    chunk_t = time_call(train, ts, iterations, repeats=repeats, keep_output=True)
     env_steps = seeds * iterations * envs * loop.env.action_repeat
     return {"chunk_iterations": iterations, "chunk_s": chunk_t["median_s"],
             "chunk_env_steps_per_s": env_steps / chunk_t["median_s"],
             "ms_per_iteration": 1e3 * chunk_t["median_s"] / iterations, "compile_chunk_s": chunk_t["first_call_s"],
-            "chunk_digest": tree_digest(train(ts, iterations))}
+            "chunk_digest": tree_digest(chunk_t["output"])}
 
 
 def main(argv=None):
