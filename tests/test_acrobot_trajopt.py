@@ -81,7 +81,7 @@ def test_closed_form_returns_and_states_are_dm_controls():
     state) are the ones dm_control's play gives, with no feedback needed over this stretch."""
     config = at.TrajoptConfig(restarts=2)
     envs = at.ceiling.dm_control_envs([3, 4])
-    p = at.ceiling.params_from_model(envs[0].physics.model.ptr)
+    p = at.physics.params_from_model(envs[0].physics.model.ptr)
     starts = np.stack([np.concatenate([env.physics.data.qpos, env.physics.data.qvel]) for env in envs])
     with jax.enable_x64(True):
         us = np.asarray(at.initial_controls(jax.random.PRNGKey(0), config, 2, 60))

@@ -30,13 +30,14 @@ def read_returns(path: str) -> dict[int, float]:
 def start_energies(episodes: list[int]) -> dict[int, tuple[float, float, float]]:
     """Episode -> (shoulder, elbow, mechanical energy in J, 0 at the shoulder's height) of dm_control's start."""
     from lnnmpc.analysis import acrobot_ceiling as ac
+    from lnnmpc.analysis import acrobot_physics as phys
 
     envs = ac.dm_control_envs(episodes)
-    params = ac.params_from_model(envs[0].physics.model.ptr)
+    params = phys.params_from_model(envs[0].physics.model.ptr)
     out = {}
     for episode, env in zip(episodes, envs, strict=True):
         qpos, qvel = np.array(env.physics.data.qpos), np.array(env.physics.data.qvel)
-        out[episode] = (float(qpos[0]), float(qpos[1]), float(ac.mechanical_energy(params, qpos, qvel)))
+        out[episode] = (float(qpos[0]), float(qpos[1]), float(phys.mechanical_energy(params, qpos, qvel)))
     return out
 
 
