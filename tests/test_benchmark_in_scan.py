@@ -13,11 +13,12 @@ import jax.numpy as jnp  # noqa: E402
 import profile_update as pu  # noqa: E402
 from train_throughput import act_call, build_loop, env_step_over_seeds_and_envs, in_scan_calls  # noqa: E402
 
+from lnnmpc.train.checkpoint import keys_as_data  # noqa: E402
+
 
 def assert_trees_close(a, b):
-    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
-        if jnp.issubdtype(x.dtype, jax.dtypes.prng_key):
-            x, y = jax.random.key_data(x), jax.random.key_data(y)
+    for x, y in zip(jax.tree_util.tree_leaves(keys_as_data(a)), jax.tree_util.tree_leaves(keys_as_data(b)),
+                    strict=True):
         np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
 
 
