@@ -39,8 +39,8 @@ def test_dynamics_match_mujoco_rk4_steps_of_dm_controls_model(dm_env, params):
         np.testing.assert_allclose(accel, data.qacc, rtol=0, atol=1e-10)
         assert model.opt.enableflags & mujoco.mjtEnableBit.mjENBL_ENERGY  # dm_control's XML asks MuJoCo for it
         mujoco_energy = data.energy.sum() - params.g * (params.m1 + params.m2) * data.xpos[1, 2]  # zero: shoulder
-        assert _x64(lambda q, v: phys.mechanical_energy(params, q, v), qpos, qvel) == pytest.approx(mujoco_energy,
-                                                                                                  abs=1e-9)
+        energy = _x64(lambda q, v: phys.mechanical_energy(params, q, v), qpos, qvel)
+        assert energy == pytest.approx(mujoco_energy, abs=1e-9)
         q, v = qpos, qvel
         for _ in range(30):
             mujoco.mj_step(model, data)
@@ -55,8 +55,8 @@ def test_reward_matches_dm_controls_task_and_energy_bounds_are_the_rest_states(d
     for qpos in [np.zeros(2), np.array([np.pi, 0.0]), np.array([0.15, -0.2]), *rng.uniform(-np.pi, np.pi, (5, 2))]:
         with physics.reset_context():
             physics.data.qpos[:] = qpos
-        assert _x64(lambda q: phys.tip_reward(params, q), qpos) == pytest.approx(dm_env.task.get_reward(physics),
-                                                                                abs=1e-14)
+        reward = _x64(lambda q: phys.tip_reward(params, q), qpos)
+        assert reward == pytest.approx(dm_env.task.get_reward(physics), abs=1e-14)
     down, up = ac.energy_bounds(params)
     assert down == pytest.approx(_x64(lambda q, v: phys.mechanical_energy(params, q, v), np.array([np.pi, 0.0]),
                                       np.zeros(2)), abs=1e-12)
