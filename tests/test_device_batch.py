@@ -490,3 +490,52 @@ def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
             assert tar.getnames() == [f"./{name}/policy.npz"]
     assert "policy left out (over POLICY_TARS=1 tars of POLICY_MIB=1): ./a-earlier/policy.npz" in (
         out / "report.txt").read_text()
+
+
+def test_device_batch_sends_a_policy_over_the_limit_in_parts_that_ingest_batch_joins(tmp_path):
+    """A policy.npz over POLICY_MIB (TD-MPC2's 5M model) goes in equal parts, one per tar where each fits no other
+    way; ``ingest_batch.sh`` joins them byte for byte. With one tar too few the report names the part left out and
+    ingest files no policy for that run rather than a truncated one."""
+    import subprocess
+    import tarfile
+
+    ingest = os.path.join(os.path.dirname(DEVICE_BATCH), "ingest_batch.sh")
+    body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; esac; shift; done; '
+            'mkdir -p "$run"; echo rows >"$run/eval.csv"; echo "{}" >"$run/config.json"; '
+            'head -c 2621440 /dev/urandom >"$run/policy.npz"')  # 2.5 MiB: three parts of 1 MiB tars
+    for tars, complete in (("3", True), ("2", False)):
+        root = tmp_path / f"tars{tars}"
+        out = root / "out"
+        out.mkdir(parents=True)
+        env = _fake_gpu_machine(root, 1, body, OUT=str(out), POLICY_MIB="1", POLICY_TARS=tars)
+        (root / "jobs.txt").write_text("big --steps 10\n")
+        result = subprocess.run(["bash", DEVICE_BATCH, "start", str(root / "jobs.txt"), "60", "30"],
+                                capture_output=True, text=True, timeout=60, env=env, cwd=root)
+        assert result.returncode == 0, result.stderr
+        names = []
+        for tar_name in ("policies.tar", "policies-2.tar", "policies-3.tar"):
+            if (out / tar_name).exists():
+                with tarfile.open(out / tar_name) as tar:
+                    names.append(tar.getnames())
+                    assert all(m.size <= 1048576 for m in tar.getmembers())
+        expected = [[f"./big/policy.npz.part-{k}-of-3"] for k in (1, 2, 3)]
+        assert names == (expected if complete else expected[:2])
+        with tarfile.open(out / "results.tar.gz") as tar:
+            assert not [n for n in tar.getnames() if "policy" in n or ".parts" in n]
+        report = (out / "report.txt").read_text()
+        assert ("left out" in report) is not complete
+        if not complete:
+            assert "policy left out (over POLICY_TARS=2 tars of POLICY_MIB=1): ./big/policy.npz.part-3-of-3" in report
+        work = root / "work"
+        work.mkdir()
+        result = subprocess.run(["bash", ingest, str(out / "results.tar.gz")], cwd=work, timeout=120,
+                                env={**os.environ, "PYTHON": "true"}, capture_output=True, text=True)
+        assert result.returncode == 0, result.stderr
+        staged = work / "runs" / "ingested" / "big"
+        assert not list(staged.glob("*.part-*"))
+        if complete:
+            assert "joined   big/policy.npz from its 3 parts" in result.stdout
+            assert (staged / "policy.npz").read_bytes() == (root / "runs" / "batch" / "big" / "policy.npz").read_bytes()
+        else:
+            assert "missing  big/policy.npz: 2 of its 3 parts came back" in result.stdout
+            assert not (staged / "policy.npz").exists()

@@ -181,7 +181,7 @@ pack_out() {
     [ -n "${OUT:-}" ] || return 0
     pack_policies >"$BATCH/policies.txt"
     print_report >"$OUT/.report.txt" 2>&1 && mv "$OUT/.report.txt" "$OUT/report.txt"
-    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock --exclude='*.deadline' --exclude=policy.npz --exclude='policy-*.npz' -C "$BATCH" . \
+    tar czf "$OUT/.results.tar.gz" --exclude=checkpoints --exclude=.lock --exclude='*.deadline' --exclude=policy.npz --exclude='policy-*.npz' --exclude=./.parts -C "$BATCH" . \
         && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
 }
 
@@ -189,43 +189,73 @@ pack_out() {
 # start first (a machine that ran an earlier start has returned those runs' policies already), each group in name
 # order, then the evaluations' policies (each run's newest first); each file goes into the first tar it keeps under
 # POLICY_MIB, else it is left out; prints one line per file left out. A tar left empty is removed from $OUT.
+# A run's policy.npz over POLICY_MIB (TD-MPC2's 5M model: ~20 MB) goes in equal parts, <file>.part-<k>-of-<n>
+# (written under $BATCH/.parts), each placed like a file; ingest_batch.sh joins them when all came back.
 run_policies() {  # the runs' policy.npz paths under $BATCH (relative), in pack_policies' order; $BATCH/started is
     # there (pack_out's one caller, report_until, runs after a start)
     (cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' -newer started | sort \
         && find . -name policy.npz -not -path '*/checkpoints/*' ! -newer started | sort)
 }
 
+policy_parts() {  # FILE BUDGET: FILE (relative to $BATCH) cut into n = ceil(size / BUDGET) equal parts under
+    # $BATCH/.parts; prints each part's path relative to $BATCH/.parts
+    local file=$1 budget=$2 size n k part
+    size=$(stat -c %s "$BATCH/$file")
+    n=$(((size + budget - 1) / budget))
+    mkdir -p "$BATCH/.parts/$(dirname "$file")"
+    split -n "$n" -d -a 3 "$BATCH/$file" "$BATCH/.parts/$file.tmp-"
+    for ((k = 1; k <= n; k++)); do
+        part=$file.part-$k-of-$n
+        mv "$BATCH/.parts/$file.tmp-$(printf %03d $((k - 1)))" "$BATCH/.parts/$part"
+        echo "$part"
+    done
+}
+
 pack_policies() {
-    local budget=$((${POLICY_MIB:-15} * 1048576)) tars=${POLICY_TARS:-3} size file i name placed
-    local -a used=() assigned=() packed=()
+    local budget=$((${POLICY_MIB:-15} * 1048576)) tars=${POLICY_TARS:-3} size file i name placed entry part
+    local -a used=() assigned=() packed=() parts=() entries=() args=()
     for ((i = 0; i < tars; i++)); do used[i]=0; done
+    rm -rf "$BATCH/.parts"
     while read -r file; do
-        size=$(stat -c %s "$BATCH/$file")
-        placed=
-        for ((i = 0; i < tars; i++)); do
-            if [ $((used[i] + size)) -le "$budget" ]; then
-                used[i]=$((used[i] + size))
-                assigned+=("$i $file")
-                placed=1
-                break
-            fi
+        entries=("b $file")
+        if [ "$(stat -c %s "$BATCH/$file")" -gt "$budget" ] && [ "$(basename "$file")" = policy.npz ]; then
+            entries=()
+            while read -r part; do entries+=("p $part"); done < <(policy_parts "$file" "$budget")
+        fi
+        for entry in "${entries[@]}"; do
+            if [ "${entry%% *}" = p ]; then size=$(stat -c %s "$BATCH/.parts/${entry#* }")
+            else size=$(stat -c %s "$BATCH/${entry#* }"); fi
+            placed=
+            for ((i = 0; i < tars; i++)); do
+                if [ $((used[i] + size)) -le "$budget" ]; then
+                    used[i]=$((used[i] + size))
+                    assigned+=("$i $entry")
+                    placed=1
+                    break
+                fi
+            done
+            [ -n "$placed" ] \
+                || echo "policy left out (over POLICY_TARS=$tars tars of POLICY_MIB=${POLICY_MIB:-15}): ${entry#* }"
         done
-        [ -n "$placed" ] || echo "policy left out (over POLICY_TARS=$tars tars of POLICY_MIB=${POLICY_MIB:-15}): $file"
     done < <(run_policies && cd "$BATCH" && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' \
                  | awk -F'/policies/policy-' '{ print $1 "\t" ($2 + 0) "\t" $0 }' | sort -t "$(printf '\t')" -k1,1 -k2,2nr \
                  | cut -f3)
     for ((i = 0; i < tars; i++)); do
         name=policies.tar
         [ "$i" -eq 0 ] || name=policies-$((i + 1)).tar
-        packed=()
-        for file in "${assigned[@]}"; do
-            [ "${file%% *}" = "$i" ] && packed+=("${file#* }")
+        packed=() parts=()
+        for entry in "${assigned[@]}"; do
+            [ "${entry%% *}" = "$i" ] || continue
+            entry=${entry#* }
+            if [ "${entry%% *}" = p ]; then parts+=("${entry#* }"); else packed+=("${entry#* }"); fi
         done
-        if [ ${#packed[@]} -eq 0 ]; then
+        if [ $((${#packed[@]} + ${#parts[@]})) -eq 0 ]; then
             rm -f "$OUT/$name"
             continue
         fi
-        tar cf "$OUT/.$name" -C "$BATCH" "${packed[@]}" && mv "$OUT/.$name" "$OUT/$name"
+        args=(-C "$BATCH" "${packed[@]}")
+        [ ${#parts[@]} -eq 0 ] || args+=(-C .parts "${parts[@]}")  # relative to $BATCH, tar's first -C
+        tar cf "$OUT/.$name" "${args[@]}" && mv "$OUT/.$name" "$OUT/$name"
     done
 }
 

@@ -5,7 +5,8 @@
 #
 # A policies.tar beside RESULTS_TAR_GZ (the runs' policy.npz files and any evaluations' policies/, packed apart by
 # device_batch.sh), and policies-2.tar ... where one was full, are unpacked over the run folders first, so each filed
-# run keeps its trained policy (git ignores policy.npz and policies/policy-*.npz);
+# run keeps its trained policy (git ignores policy.npz and policies/policy-*.npz); a policy.npz that came in parts
+# (<file>.part-<k>-of-<n>, over POLICY_MIB) is joined when every part came back;
 # - every study run folder of the batch (runs/batch/experiments/<task>/<agent>/<condition>, no checkpoints) is
 #   copied into experiments/results/study-runs/, the runs-dir the committed study tables are built from (but
 #   Figure 5.19's: experiments/results/study-runs-fig5_19-h100/). A newer copy of a run replaces the older one,
@@ -56,6 +57,21 @@ for policies in "$(dirname "$tarball")"/policies.tar "$(dirname "$tarball")"/pol
     snapshots=$(tar -tf "$policies" | grep -c '/policies/policy-[0-9]*[.]npz$' || true)
     [ "$snapshots" -eq 0 ] || echo "         $snapshots evaluations' policies (policies/policy-<step>.npz)"
 done
+while read -r first; do  # a policy.npz too large for one tar came in parts <file>.part-<k>-of-<n>: joined in order
+    base=${first%.part-1-of-*} count=${first##*-of-}
+    parts=()
+    for ((k = 1; k <= count; k++)); do
+        [ -f "$base.part-$k-of-$count" ] && parts+=("$base.part-$k-of-$count")
+    done
+    if [ ${#parts[@]} -eq "$count" ]; then
+        cat "${parts[@]}" >"$base"
+        echo "joined   ${base#"$tmp"/} from its $count parts"
+    else
+        echo "missing  ${base#"$tmp"/}: ${#parts[@]} of its $count parts came back (device_batch.sh's report names" \
+            "those left out); not filed"
+    fi
+    rm -f "$base".part-*-of-"$count"
+done < <(find "$tmp" -name '*.part-1-of-*')
 mkdir -p "$runs"
 if [ -d "$tmp/experiments" ]; then
     for run in "$tmp"/experiments/*/*/*/; do
