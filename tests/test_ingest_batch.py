@@ -207,3 +207,29 @@ def test_ingest_batch_unpacks_every_policies_tar(tmp_path):
     assert f"policies 1 policy.npz from {tmp_path / 'policies.tar'}" in result.stdout
     assert f"policies 0 policy.npz from {tmp_path / 'policies-2.tar'}" in result.stdout
     assert result.stdout.count("1 evaluations' policies") == 2
+
+
+def test_ingest_batch_files_no_part_of_a_policy_whose_first_part_stayed_behind(tmp_path):
+    """A policy that came in parts with its first part missing is named and none of its parts is filed: no stray
+    ``policy.npz.part-*`` in the staged run, no truncated ``policy.npz``."""
+    import subprocess
+    import tarfile
+
+    batch = tmp_path / "batch"
+    run = batch / "tdmpc2-run"
+    run.mkdir(parents=True)
+    (run / "config.json").write_text("{}")
+    with tarfile.open(tmp_path / "results.tar.gz", "w:gz") as tar:
+        tar.add(batch, arcname=".")
+    (run / "policy.npz.part-2-of-2").write_bytes(b"second half")
+    with tarfile.open(tmp_path / "policies-2.tar", "w") as tar:
+        tar.add(run / "policy.npz.part-2-of-2", arcname="./tdmpc2-run/policy.npz.part-2-of-2")
+    script = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "ingest_batch.sh")
+    work = tmp_path / "work"
+    work.mkdir()
+    result = subprocess.run(["bash", script, str(tmp_path / "results.tar.gz")], cwd=work, timeout=120,
+                            env={**os.environ, "PYTHON": "true"}, capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert "missing  tdmpc2-run/policy.npz: 1 of its 2 parts came back" in result.stdout
+    staged = work / "runs" / "ingested" / "tdmpc2-run"
+    assert sorted(p.name for p in staged.iterdir()) == ["config.json"]

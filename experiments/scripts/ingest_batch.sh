@@ -57,8 +57,8 @@ for policies in "$(dirname "$tarball")"/policies.tar "$(dirname "$tarball")"/pol
     snapshots=$(tar -tf "$policies" | grep -c '/policies/policy-[0-9]*[.]npz$' || true)
     [ "$snapshots" -eq 0 ] || echo "         $snapshots evaluations' policies (policies/policy-<step>.npz)"
 done
-while read -r first; do  # a policy.npz too large for one tar came in parts <file>.part-<k>-of-<n>: joined in order
-    base=${first%.part-1-of-*} count=${first##*-of-}
+while IFS=$'\t' read -r base count; do  # a policy.npz too large for one tar came in parts <file>.part-<k>-of-<n>:
+    # joined in order where all n came back, else none of them is filed
     parts=()
     for ((k = 1; k <= count; k++)); do
         [ -f "$base.part-$k-of-$count" ] && parts+=("$base.part-$k-of-$count")
@@ -71,7 +71,7 @@ while read -r first; do  # a policy.npz too large for one tar came in parts <fil
             "those left out); not filed"
     fi
     rm -f "$base".part-*-of-"$count"
-done < <(find "$tmp" -name '*.part-1-of-*')
+done < <(find "$tmp" -name '*.part-*-of-*' | sed -n 's/[.]part-[0-9]*-of-\([0-9]*\)$/\t\1/p' | sort -u)
 mkdir -p "$runs"
 if [ -d "$tmp/experiments" ]; then
     for run in "$tmp"/experiments/*/*/*/; do
