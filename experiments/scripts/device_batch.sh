@@ -211,20 +211,22 @@ policy_parts() {  # FILE BUDGET: FILE (relative to $BATCH) cut into n = ceil(siz
     done
 }
 
+packed_path() {  # ENTRY: where pack_policies' entry lies (a part, <file>.part-<k>-of-<n>, under $BATCH/.parts)
+    case $1 in *.part-*-of-*) echo "$BATCH/.parts/$1" ;; *) echo "$BATCH/$1" ;; esac
+}
+
 pack_policies() {
-    local budget=$((${POLICY_MIB:-15} * 1048576)) tars=${POLICY_TARS:-3} size file i name placed entry part
+    local budget=$((${POLICY_MIB:-15} * 1048576)) tars=${POLICY_TARS:-3} size file i name placed entry
     local -a used=() assigned=() packed=() parts=() entries=() args=()
     for ((i = 0; i < tars; i++)); do used[i]=0; done
     rm -rf "$BATCH/.parts"
     while read -r file; do
-        entries=("b $file")
+        entries=("$file")
         if [ "$(stat -c %s "$BATCH/$file")" -gt "$budget" ] && [ "$(basename "$file")" = policy.npz ]; then
-            entries=()
-            while read -r part; do entries+=("p $part"); done < <(policy_parts "$file" "$budget")
+            mapfile -t entries < <(policy_parts "$file" "$budget")
         fi
         for entry in "${entries[@]}"; do
-            if [ "${entry%% *}" = p ]; then size=$(stat -c %s "$BATCH/.parts/${entry#* }")
-            else size=$(stat -c %s "$BATCH/${entry#* }"); fi
+            size=$(stat -c %s "$(packed_path "$entry")")
             placed=
             for ((i = 0; i < tars; i++)); do
                 if [ $((used[i] + size)) -le "$budget" ]; then
@@ -235,7 +237,7 @@ pack_policies() {
                 fi
             done
             [ -n "$placed" ] \
-                || echo "policy left out (over POLICY_TARS=$tars tars of POLICY_MIB=${POLICY_MIB:-15}): ${entry#* }"
+                || echo "policy left out (over POLICY_TARS=$tars tars of POLICY_MIB=${POLICY_MIB:-15}): $entry"
         done
     done < <(run_policies && cd "$BATCH" && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' \
                  | awk -F'/policies/policy-' '{ print $1 "\t" ($2 + 0) "\t" $0 }' | sort -t "$(printf '\t')" -k1,1 -k2,2nr \
@@ -246,8 +248,7 @@ pack_policies() {
         packed=() parts=()
         for entry in "${assigned[@]}"; do
             [ "${entry%% *}" = "$i" ] || continue
-            entry=${entry#* }
-            if [ "${entry%% *}" = p ]; then parts+=("${entry#* }"); else packed+=("${entry#* }"); fi
+            case ${entry#* } in *.part-*-of-*) parts+=("${entry#* }") ;; *) packed+=("${entry#* }") ;; esac
         done
         if [ $((${#packed[@]} + ${#parts[@]})) -eq 0 ]; then
             rm -f "$OUT/$name"
