@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The acrobot lines trained on master seeds 1-3 since the learning-rate decay ([73]-[101]): each run's last training
+# The acrobot lines trained on master seeds 1-3 since the learning-rate decay ([73]-[103]): each run's last training
 # evaluation (~200K), grouped by line, against issue #5's 700 and TD-MPC2's measured 278.1 ([21]).
 #   bash experiments/scripts/acrobot_levers_figure.sh [PREFIX]
 # (default PREFIX experiments/results/figures/acrobot-levers-master-seeds123-200k; run from the project root with the
@@ -18,10 +18,12 @@ runs() {  # FOLDER NAME: FOLDER/NAME1,FOLDER/NAME2,FOLDER/NAME3 (NAME ends in "s
     --line "every 8 [84]=$(runs ar4-ar8-h100-200k acrobot-recipe-ar8-seed)" \
     --line "every 4, 3 updates [85]=$(runs utd3-h200-200k acrobot-recipe-utd3-seed)" \
     --line "every 4, 5 Q heads [88] [92]=$R-gamma995-numq5-h100-200k/acrobot-recipe-numq5-seed1,$R-numq5-seeds23-h100-200k/acrobot-recipe-numq5-seed2,$R-numq5-seeds23-h100-200k/acrobot-recipe-numq5-seed3" \
-    --line "every 6 (recipe) [93]=$(runs ar6-h100-200k acrobot-recipe-ar6-seed)" \
+    --line "every 6, gamma 0.99 [93]=$(runs ar6-h100-200k acrobot-recipe-ar6-seed)" \
+    --line "every 6, gamma 0.99 again [103]=$(runs gamma99-relaunch-h100-200k acrobot-recipe-gamma99-relaunch-seed)" \
     --line "every 6, 3 updates [94]=$(runs ar6-utd3-h100-200k acrobot-recipe-ar6-utd3-seed)" \
     --line "every 6, gamma 0.97 [97]=$(runs gamma-h100-200k acrobot-recipe-gamma97-seed)" \
-    --line "every 6, gamma 0.985 [97]=$(runs gamma-h100-200k acrobot-recipe-gamma985-seed)" \
+    --line "every 6, gamma 0.985 (recipe) [97]=$(runs gamma-h100-200k acrobot-recipe-gamma985-seed)" \
+    --line "every 6, gamma 0.985 again (recipe) [102]=$(runs gamma985-relaunch-h100-200k acrobot-recipe-gamma985-relaunch-seed)" \
     --line "every 6, window 32 [101]=$(runs h32-h100-200k acrobot-recipe-h32-seed)" \
     --bar 700 --reference "TD-MPC2 [21]=278.1" --run-names "master seed 1,master seed 2,master seed 3" \
     --title "acrobot-swingup, cfc-zp-det, master seeds 1-3 at ~200K: the lines since the learning-rate decay" \
