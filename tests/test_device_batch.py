@@ -27,6 +27,50 @@ def test_device_batch_check_validates_every_job_line(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["jobs.txt"]  # nothing written beside it
 
 
+def test_device_batch_lint_passes_every_committed_jobs_file():
+    """``device_batch.sh lint`` over every jobs file under experiments/scripts (the shape alone, no dry run): each
+    committed file is one that ``start`` would launch, with no prose line that lost its '#' and no name twice."""
+    import glob
+    import subprocess
+
+    files = sorted(glob.glob(os.path.join(os.path.dirname(DEVICE_BATCH), "jobs-*.txt")))
+    assert len(files) > 100
+    result = subprocess.run(["bash", DEVICE_BATCH, "lint", *files], capture_output=True, text=True, timeout=60)
+    assert (result.returncode, result.stderr) == (0, ""), result.stderr[-2000:]
+    assert result.stdout == f"ok      {len(files)} jobs file(s)\n"
+
+
+def test_device_batch_lint_names_each_bad_line_and_start_launches_nothing_from_it(tmp_path):
+    """A jobs file with a repeated job name, a note that lost its '#', a bad name and a bare name: ``lint`` names
+    each line (FILE:LINE), ``check`` fails it, and ``start`` exits 2 before it launches anything."""
+    import subprocess
+
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("# header\nrun-a  --task cartpole-balance\nRan 2026-12-07 on one H100\n"
+                    "run-a@0  --task cartpole-swingup\nbad/name  --task cartpole-balance\nbare\n"
+                    "study-b  experiment fig5_19 --small\n")
+    result = subprocess.run(["bash", DEVICE_BATCH, "lint", str(jobs)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1 and result.stdout == ""
+    assert result.stderr.splitlines() == [
+        f"{jobs}:3: Ran 2026-12-07 on one H100: a job line is <name> --<trainer arguments> or <name> experiment"
+        " <study arguments> (a comment starts with #)",
+        f"{jobs}:4: job name run-a again (line 2): each job of a file needs its own name",
+        f"{jobs}:5: job name bad/name: give letters, digits, . _ or - (and @<gpu>)",
+        f"{jobs}:6: bare: a job line is <name> --<trainer arguments> or <name> experiment <study arguments> (a"
+        " comment starts with #)"]
+    env = _fake_gpu_machine(tmp_path, 1, "echo launched; exit 0")
+    check = subprocess.run(["bash", DEVICE_BATCH, "check", str(jobs)], capture_output=True, text=True, timeout=60,
+                           env=env, cwd=tmp_path)
+    assert check.returncode == 1 and f"{jobs}:4: job name run-a again" in check.stderr
+    start = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "20"], capture_output=True, text=True,
+                           timeout=60, env=env, cwd=tmp_path)
+    assert start.returncode == 2 and f"{jobs}:3: Ran 2026-12-07" in start.stderr
+    assert not (tmp_path / "runs" / "batch" / "commands.txt").exists()  # nothing launched
+    missing = subprocess.run(["bash", DEVICE_BATCH, "lint", str(tmp_path / "none.txt")], capture_output=True,
+                             text=True, timeout=60)
+    assert missing.returncode == 1 and "none.txt: no such jobs file" in missing.stderr
+
+
 def _fake_gpu_machine(tmp_path, gpus: int, python_body: str, **extra) -> dict:
     """The environment of a fake GPU machine for ``device_batch.sh``: an ``nvidia-smi`` that lists ``gpus`` GPUs
     and a PYTHON that runs the shell ``python_body``; no OUT, MEM_FRACTION or FORCE from outside; ``extra`` added."""

@@ -21,9 +21,13 @@
 #                                               from outside), run COMMAND on GPU in the background
 #                                               (own session; output in runs/batch/after-NAME.log): a benchmark
 #                                               on a GPU that a finished job left idle; returns at once
-#   device_batch.sh check JOBS                  before spending device time, here on the CPU: validate every
-#                                               line (train --check; studies --dry-run); exit 1 if any fails
-#                                               ($PYTHON picks the interpreter, default python3)
+#   device_batch.sh check JOBS                  before spending device time, here on the CPU: `lint` the file,
+#                                               then validate every line (train --check; studies --dry-run);
+#                                               exit 1 if any fails ($PYTHON picks the interpreter, default python3)
+#   device_batch.sh lint JOBS...                the files' shape alone, in well under a second each (no dry run):
+#                                               every job line "<name> --..." or "<name> experiment ...", no job
+#                                               name twice in a file; exit 1 naming each bad line. `start` lints
+#                                               its file first and launches nothing from a bad one
 #
 # JOBS: one line per run, "<name> <trainer arguments>" (lines starting with # are skipped); each becomes
 #   python3 -m lnnmpc.train.cli train <arguments> --out runs/batch/<name> --compile-cache runs/jaxcache
@@ -49,7 +53,7 @@
 set -u
 BATCH=runs/batch
 SCRIPTS=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
-action=${1:?start, wait, extend, after or check}
+action=${1:?start, wait, extend, after, check or lint}
 shift
 case ${POLICY_TARS:-3} in  # report.txt, results.tar.gz and the policies' tars: at most 8 files come back
     [1-6]) ;;
@@ -58,6 +62,33 @@ esac
 
 job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines)
     grep -v -E '^\s*(#|$)' "$1"
+}
+
+# Exit 1, each problem on stderr as FILE:LINE, when a job line of JOBS is no "<name> <arguments>" line (a name of
+# letters, digits, '.', '_' or '-', with an optional "@<gpu>"; arguments beginning with "--" or "experiment ": a
+# line of prose that lost its '#' fails here) or repeats a job name of the file (two processes would train in one
+# run folder).
+lint_jobs() {  # JOBS
+    [ -r "$1" ] || { echo "$1: no such jobs file" >&2; return 1; }
+    awk -v file="$1" '
+        /^[[:space:]]*(#|$)/ { next }
+        {
+            name = $1; sub(/@.*/, "", name)
+            args = $0; sub(/^[[:space:]]*[^[:space:]]+[[:space:]]*/, "", args)
+            if (name !~ /^[A-Za-z0-9][A-Za-z0-9._-]*$/) {
+                printf "%s:%d: job name %s: give letters, digits, . _ or - (and @<gpu>)\n", file, NR, $1; bad = 1
+            } else if (args !~ /^(--|experiment )/) {
+                printf "%s:%d: %s: a job line is <name> --<trainer arguments> or <name> experiment <study" \
+                    " arguments> (a comment starts with #)\n", file, NR, substr($0, 1, 60); bad = 1
+            }
+            if (name in seen) {
+                printf "%s:%d: job name %s again (line %d): each job of a file needs its own name\n", file, NR,
+                    name, seen[name]; bad = 1
+            } else {
+                seen[name] = NR
+            }
+        }
+        END { exit bad }' "$1" >&2
 }
 
 # "NAME@K" -> "NAME K", "NAME@all" -> "NAME all"; a plain NAME -> "NAME" (no GPU asked for); exit 1 for a GPU
@@ -287,6 +318,7 @@ start)
     seconds=${2:?SECONDS}
     report=${3:?REPORT}
     [[ $seconds =~ ^[0-9]+$ ]] || { echo "start: SECONDS must be a whole number of seconds, not '$seconds'" >&2; exit 2; }
+    lint_jobs "$jobs" || exit 2
     deadline=$(($(date +%s) + report))  # counted from here: a relaunch's wait for its earlier process included
     mkdir -p "$BATCH" runs/jaxcache
     date +%s >"$BATCH/started"
@@ -422,6 +454,7 @@ check)
     jobs=${1:?JOBS file}
     scratch=$(mktemp -d)
     failed=0
+    lint_jobs "$jobs" || failed=1
     all_alone "$jobs" || failed=1
     while read -r name args; do
         if ! split=$(split_name "$name" 2>&1); then
@@ -448,8 +481,17 @@ check)
     rm -rf "$scratch"
     exit $failed
     ;;
+lint)
+    [ $# -ge 1 ] || { echo "lint: give one or more JOBS files" >&2; exit 2; }
+    failed=0
+    for jobs in "$@"; do
+        lint_jobs "$jobs" || failed=1
+    done
+    [ "$failed" = 0 ] && echo "ok      $# jobs file(s)"
+    exit $failed
+    ;;
 *)
-    echo "unknown action $action (start, wait, extend, after or check)" >&2
+    echo "unknown action $action (start, wait, extend, after, check or lint)" >&2
     exit 2
     ;;
 esac
