@@ -246,7 +246,8 @@ def test_final_returns_figure_takes_each_runs_last_evaluation_by_line(tmp_path, 
 def test_the_acrobot_levers_figure_regenerates_from_the_committed_runs(tmp_path):
     """experiments/scripts/acrobot_levers_figure.sh rebuilds the committed figure's CSV byte for byte from the
     committed runs (their eval.csv), so the figure states what the runs hold (RESULTS.md [102]: the recipe, gamma
-    0.985, launched again 646.5; [104]: with the latent head's observation skip 641.3)."""
+    0.985, launched again 646.5; [104]: with the latent head's observation skip 641.3; [106]: with a CfC backbone 256
+    wide 664.5)."""
     import subprocess
     import sys
 
@@ -258,3 +259,5 @@ def test_the_acrobot_levers_figure_regenerates_from_the_committed_runs(tmp_path)
     assert open(tmp_path / "fig.csv").read() == open(committed).read()
     assert "every 6, gamma 0.985 again (recipe) [102]: 675.0 / 621.2 / 643.2, mean 646.5" in done.stdout
     assert "every 6, gamma 0.985, observation skip [104]: 610.6 / 626.0 / 687.4, mean 641.3" in done.stdout
+    assert "every 6, gamma 0.985, tau 0.02 [105]: 619.5 / 634.8 / 634.1, mean 629.5" in done.stdout
+    assert "every 6, gamma 0.985, CfC backbone 256 [106]: 639.4 / 655.2 / 698.8, mean 664.5" in done.stdout
