@@ -71,6 +71,28 @@ def test_device_batch_lint_names_each_bad_line_and_start_launches_nothing_from_i
     assert missing.returncode == 1 and "none.txt: no such jobs file" in missing.stderr
 
 
+def test_device_batch_start_launches_only_the_named_lines(tmp_path):
+    """``ONLY=a,c device_batch.sh start``: only those lines of the file are launched (placed round robin among
+    themselves); a name the file lacks stops it before any launch, naming the file's jobs."""
+    import subprocess
+
+    jobs = tmp_path / "jobs.txt"
+    jobs.write_text("a  --task cartpole-balance\nb@1  --task cartpole-swingup\nc  --task acrobot-swingup\n")
+    env = _fake_gpu_machine(tmp_path, 2, 'echo "gpu=$CUDA_VISIBLE_DEVICES $*"', MPS="0")
+    wrong = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "20"], capture_output=True, text=True,
+                           timeout=60, env={**env, "ONLY": "a,d"}, cwd=tmp_path)
+    assert wrong.returncode == 2 and f"ONLY names no job of {jobs}: d; its jobs: a b c" in wrong.stderr
+    assert not (tmp_path / "runs" / "batch" / "commands.txt").exists()
+    result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "20"], capture_output=True, text=True,
+                            timeout=60, env={**env, "ONLY": "c,a"}, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    batch = tmp_path / "runs" / "batch"
+    assert (batch / "commands.txt").read_text().splitlines() == [
+        "a (GPU 0): --task cartpole-balance", "c (GPU 1): --task acrobot-swingup"]
+    assert (batch / "c.log").read_text().startswith("gpu=1 -m lnnmpc.train.cli train --task acrobot-swingup")
+    assert not (batch / "b.log").exists()
+
+
 def _fake_gpu_machine(tmp_path, gpus: int, python_body: str, **extra) -> dict:
     """The environment of a fake GPU machine for ``device_batch.sh``: an ``nvidia-smi`` that lists ``gpus`` GPUs
     and a PYTHON that runs the shell ``python_body``; no OUT, MEM_FRACTION or FORCE from outside; ``extra`` added."""

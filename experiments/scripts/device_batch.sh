@@ -12,6 +12,8 @@
 #                                               killed from outside counts as ended); a training
 #                                               job whose earlier launch of the same line exited 0 (its run
 #                                               reached its steps) is not launched again (RERUN=1 relaunches it)
+#                                               ONLY=NAME[,NAME...] launches only those lines of JOBS (a relaunch
+#                                               of some lines of a larger plan needs no file of its own)
 #   device_batch.sh wait REPORT                 report again after REPORT seconds or when all have ended
 #   device_batch.sh extend SECONDS [NAME...]    move the SIGTERM limit of the running jobs (or of those NAMEd) by
 #                                               SECONDS (negative: sooner), e.g. when a run trains slower than its
@@ -89,6 +91,27 @@ lint_jobs() {  # JOBS
             }
         }
         END { exit bad }' "$1" >&2
+}
+
+# The lines of JOBS whose job names (without "@<gpu>") are in NAMES (comma-separated), written to a new temporary
+# file whose path is printed; exit 1 naming each name JOBS lacks and the names it has.
+select_jobs() {  # JOBS NAMES
+    local names have wanted missing="" selected
+    names=$(job_lines "$1" | awk '{sub(/@.*/, "", $1); print $1}')
+    wanted=$(echo "$2" | tr ',' '\n' | sed '/^$/d')
+    for name in $wanted; do
+        echo "$names" | grep -qxF "$name" || missing="$missing $name"
+    done
+    if [ -n "$missing" ] || [ -z "$wanted" ]; then
+        have=$(echo "$names" | tr '\n' ' ')
+        echo "ONLY names no job of $1:${missing:- (none given)}; its jobs: ${have% }" >&2
+        return 1
+    fi
+    selected=$(mktemp)
+    job_lines "$1" | awk -v keep="$(echo "$wanted" | tr '\n' ',')" '
+        BEGIN { n = split(keep, k, ","); for (i = 1; i <= n; i++) if (k[i] != "") want[k[i]] }
+        { name = $1; sub(/@.*/, "", name); if (name in want) print }' >"$selected"
+    echo "$selected"
 }
 
 # "NAME@K" -> "NAME K", "NAME@all" -> "NAME all"; a plain NAME -> "NAME" (no GPU asked for); exit 1 for a GPU
@@ -319,6 +342,10 @@ start)
     report=${3:?REPORT}
     [[ $seconds =~ ^[0-9]+$ ]] || { echo "start: SECONDS must be a whole number of seconds, not '$seconds'" >&2; exit 2; }
     lint_jobs "$jobs" || exit 2
+    if [ -n "${ONLY:-}" ]; then
+        jobs=$(select_jobs "$jobs" "$ONLY") || exit 2
+        trap 'rm -f "$jobs"' EXIT
+    fi
     deadline=$(($(date +%s) + report))  # counted from here: a relaunch's wait for its earlier process included
     mkdir -p "$BATCH" runs/jaxcache
     date +%s >"$BATCH/started"
