@@ -62,8 +62,12 @@ case ${POLICY_TARS:-3} in  # report.txt, results.tar.gz and the policies' tars: 
     *) echo "POLICY_TARS=${POLICY_TARS} must be 1 to 6 (the device tool returns at most 8 files)" >&2; exit 2 ;;
 esac
 
+# A line of a jobs file that is no job line: a comment or a blank line (an extended regex; job_lines and lint_jobs
+# both skip what it matches)
+NOT_A_JOB='^[[:space:]]*(#|$)'
+
 job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines)
-    grep -v -E '^\s*(#|$)' "$1"
+    grep -v -E "$NOT_A_JOB" "$1"
 }
 
 # Exit 1, each problem on stderr as FILE:LINE, when a job line of JOBS is no "<name> <arguments>" line (a name of
@@ -72,8 +76,8 @@ job_lines() {  # JOBS: the job lines of a jobs file (no comments, no blank lines
 # run folder).
 lint_jobs() {  # JOBS
     [ -r "$1" ] || { echo "$1: no such jobs file" >&2; return 1; }
-    awk -v file="$1" '
-        /^[[:space:]]*(#|$)/ { next }
+    awk -v file="$1" -v skip="$NOT_A_JOB" '
+        $0 ~ skip { next }
         {
             name = $1; sub(/@.*/, "", name)
             args = $0; sub(/^[[:space:]]*[^[:space:]]+[[:space:]]*/, "", args)
@@ -108,9 +112,8 @@ select_jobs() {  # JOBS NAMES
         return 1
     fi
     selected=$(mktemp)
-    job_lines "$1" | awk -v keep="$(echo "$wanted" | tr '\n' ',')" '
-        BEGIN { n = split(keep, k, ","); for (i = 1; i <= n; i++) if (k[i] != "") want[k[i]] }
-        { name = $1; sub(/@.*/, "", name); if (name in want) print }' >"$selected"
+    job_lines "$1" | awk -v keep=",$2," '{ name = $1; sub(/@.*/, "", name); if (index(keep, "," name ",")) print }' \
+        >"$selected"
     echo "$selected"
 }
 
