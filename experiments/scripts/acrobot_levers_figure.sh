@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The acrobot lines trained on master seeds 1-3 since the learning-rate decay ([73]-[106]): each run's last training
+# The acrobot lines trained on master seeds 1-3 since the learning-rate decay ([73]-[108]): each run's last training
 # evaluation (~200K), grouped by line, against issue #5's 700 and TD-MPC2's measured 278.1 ([21]).
 #   bash experiments/scripts/acrobot_levers_figure.sh [PREFIX]
 # (default PREFIX experiments/results/figures/acrobot-levers-master-seeds123-200k; run from the project root with the
@@ -28,6 +28,8 @@ runs() {  # FOLDER NAME: FOLDER/NAME1,FOLDER/NAME2,FOLDER/NAME3 (NAME ends in "s
     --line "every 6, gamma 0.985, observation skip [104]=$(runs obsskip-h200-200k acrobot-recipe-obsskip-seed)" \
     --line "every 6, gamma 0.985, tau 0.02 [105]=$(runs tau02-h100-200k acrobot-recipe-tau02-seed)" \
     --line "every 6, gamma 0.985, CfC backbone 256 [106]=$(runs backbone256-h100-200k acrobot-recipe-bb256-seed)" \
+    --line "every 6, gamma 0.985, CfC backbone 256 again [107]=$(runs backbone256-relaunch-h100-200k acrobot-recipe-bb256-relaunch-seed)" \
+    --line "every 6, gamma 0.985, CfC backbone 512 [108]=$(runs backbone512-h100-200k acrobot-recipe-bb512-seed)" \
     --bar 700 --reference "TD-MPC2 [21]=278.1" --run-names "master seed 1,master seed 2,master seed 3" \
     --title "acrobot-swingup, cfc-zp-det, master seeds 1-3 at ~200K: the lines since the learning-rate decay" \
     --out "$out"
