@@ -120,7 +120,8 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                   "steps deep, pink exploration noise ([55], [64]), and the learning rate decayed to 0.1 x over "
                   "updates 33,333-66,667 (environment steps 100K-200K). GPU launches need not replay each other bit "
                   "for bit (the recipe at every 4 launched twice on master seed 1: 655.9, 624.5 [91]); under "
-                  "--deterministic two launches side by side replayed byte for byte [93]."),
+                  "--deterministic two launches side by side replayed byte for byte [93]. ncps's 128-unit CfC "
+                  "backbone: 256 units ended at 664.5 and 638.0 in two launches, 512 at 647.9, level ([106]-[108])."),
         runs=(*(f"{_RESULTS}/cfc-acrobot-recipe-gamma-h100-200k/acrobot-recipe-gamma985-seed{seed}"
                 for seed in (1, 2, 3, 0, 4, 5)),
               *(f"{_RESULTS}/cfc-acrobot-recipe-gamma985-relaunch-h100-200k/acrobot-recipe-gamma985-relaunch-seed{seed}"
