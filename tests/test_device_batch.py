@@ -558,6 +558,34 @@ def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
         out / "report.txt").read_text()
 
 
+def test_device_batch_packs_the_latest_starts_evaluation_policies_before_the_earlier_starts(tmp_path):
+    """With --eval-policies, a second start on the same machine packs its runs' policy.npz and then their evaluations'
+    policies before any of the earlier start's files (returned by the earlier call already): the earlier run's
+    policy.npz and evaluations are the ones left out, not the new run's evaluations."""
+    import subprocess
+    import tarfile
+
+    out = tmp_path / "out"
+    out.mkdir()
+    body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; esac; shift; done; '
+            'mkdir -p "$run/policies"; echo rows >"$run/eval.csv"; head -c 300000 /dev/zero >"$run/policy.npz"; '
+            'for step in 600 1200; do head -c 300000 /dev/zero >"$run/policies/policy-$step.npz"; done')
+    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1", POLICY_TARS="1")
+    for name in ("a-earlier", "z-later"):  # three files of a run fit one tar of 1 MiB, four do not
+        jobs = tmp_path / f"{name}.txt"
+        jobs.write_text(f"{name} --steps 10\n")
+        result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
+                                text=True, timeout=60, env=env, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        with tarfile.open(out / "policies.tar") as tar:
+            assert tar.getnames() == [f"./{name}/policy.npz", f"./{name}/policies/policy-1200.npz",
+                                      f"./{name}/policies/policy-600.npz"]
+    report = (out / "report.txt").read_text()
+    for left_out in ("policy.npz", "policies/policy-1200.npz", "policies/policy-600.npz"):
+        assert f"policy left out (over POLICY_TARS=1 tars of POLICY_MIB=1): ./a-earlier/{left_out}" in report
+    assert report.count("left out") == 3
+
+
 def test_device_batch_sends_a_policy_over_the_limit_in_parts_that_ingest_batch_joins(tmp_path):
     """A policy.npz over POLICY_MIB (TD-MPC2's 5M model) goes in equal parts, one per tar where each fits no other
     way; ``ingest_batch.sh`` joins them byte for byte. With one tar too few the report names the part left out and

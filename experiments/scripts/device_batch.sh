@@ -233,7 +233,7 @@ print_report() {
 # tool returns files of at most 16 MiB, 8 files and 64 MiB in all), the policies written since the latest start
 # first; the report names any left out.
 # Runs trained with --eval-policies add each evaluation's policy (policies/policy-<step>.npz): packed after every
-# run's policy.npz, newest evaluation first, while they fit.
+# run's policy.npz of the same start, newest evaluation first, while they fit.
 pack_out() {
     [ -n "${OUT:-}" ] || return 0
     pack_policies >"$BATCH/policies.txt"
@@ -242,16 +242,26 @@ pack_out() {
         && mv "$OUT/.results.tar.gz" "$OUT/results.tar.gz"
 }
 
-# $OUT/policies.tar (then policies-2.tar ...): every run's policy.npz under $BATCH, those written since the latest
-# start first (a machine that ran an earlier start has returned those runs' policies already), each group in name
-# order, then the evaluations' policies (each run's newest first); each file goes into the first tar it keeps under
-# POLICY_MIB, else it is left out; prints one line per file left out. A tar left empty is removed from $OUT.
+# $OUT/policies.tar (then policies-2.tar ...): the policy files under $BATCH, those written since the latest start
+# first (a machine that ran an earlier start has returned those runs' policies already); in each group every run's
+# policy.npz in name order, then the evaluations' policies (each run's newest first); each file goes into the first
+# tar it keeps under POLICY_MIB, else it is left out; prints one line per file left out. A tar left empty is removed
+# from $OUT.
 # A run's policy.npz over POLICY_MIB (TD-MPC2's 5M model: ~20 MB) goes in equal parts, <file>.part-<k>-of-<n>
 # (written under $BATCH/.parts), each placed like a file; ingest_batch.sh joins them when all came back.
-run_policies() {  # the runs' policy.npz paths under $BATCH (relative), in pack_policies' order; $BATCH/started is
-    # there (pack_out's one caller, report_until, runs after a start)
-    (cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' -newer started | sort \
-        && find . -name policy.npz -not -path '*/checkpoints/*' ! -newer started | sort)
+batch_policies() {  # FIND_TEST...: the policy files under $BATCH (relative) that pass find's tests FIND_TEST...:
+    # each run's policy.npz in name order, then the evaluations' policies/policy-<step>.npz, by run, newest first
+    (cd "$BATCH" && find . -name policy.npz -not -path '*/checkpoints/*' "$@" | sort \
+        && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' "$@" \
+            | awk -F'/policies/policy-' '{ print $1 "\t" ($2 + 0) "\t" $0 }' | sort -t "$(printf '\t')" -k1,1 -k2,2nr \
+            | cut -f3)
+}
+
+run_policies() {  # every policy file under $BATCH (relative) in pack_policies' order: those written since the latest
+    # start first, then the earlier ones; $BATCH/started is there (pack_out's one caller, report_until, runs after a
+    # start)
+    batch_policies -newer started
+    batch_policies ! -newer started
 }
 
 policy_parts() {  # FILE BUDGET: FILE (relative to $BATCH) cut into n = ceil(size / BUDGET) equal parts under
@@ -296,9 +306,7 @@ pack_policies() {
             [ -n "$placed" ] \
                 || echo "policy left out (over POLICY_TARS=$tars tars of POLICY_MIB=${POLICY_MIB:-15}): $entry"
         done
-    done < <(run_policies && cd "$BATCH" && find . -path '*/policies/policy-*.npz' -not -path '*/checkpoints/*' \
-                 | awk -F'/policies/policy-' '{ print $1 "\t" ($2 + 0) "\t" $0 }' | sort -t "$(printf '\t')" -k1,1 -k2,2nr \
-                 | cut -f3)
+    done < <(run_policies)
     for ((i = 0; i < tars; i++)); do
         name=policies.tar
         [ "$i" -eq 0 ] || name=policies-$((i + 1)).tar
