@@ -3,6 +3,8 @@ checking job lines, placing and relaunching jobs, limits, the report and the pac
 
 import os
 
+import pytest
+
 DEVICE_BATCH = os.path.join(os.path.dirname(__file__), "..", "experiments", "scripts", "device_batch.sh")
 
 
@@ -535,16 +537,26 @@ def test_device_batch_refuses_a_policies_tar_count_the_tool_cannot_return(tmp_pa
         assert f"POLICY_TARS={bad} must be 1 to 6" in result.stderr
 
 
-def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
-    """A second start on the same machine packs the policies its runs wrote before those of the earlier start's runs
-    (which the earlier call's policies.tar brought back already): here only one fits, and it is the new run's."""
+_ONE_POLICY = 'head -c 600000 /dev/zero >"$run/policy.npz"'
+_WITH_EVALUATIONS = ('head -c 300000 /dev/zero >"$run/policy.npz"; mkdir -p "$run/policies"; '
+                     'for step in 600 1200; do head -c 300000 /dev/zero >"$run/policies/policy-$step.npz"; done')
+
+
+@pytest.mark.parametrize("writes, files", [
+    (_ONE_POLICY, ["policy.npz"]),
+    (_WITH_EVALUATIONS, ["policy.npz", "policies/policy-1200.npz", "policies/policy-600.npz"])])
+def test_device_batch_packs_the_latest_starts_policies_first(tmp_path, writes, files):
+    """A second start on the same machine packs the policies its runs wrote (their policy.npz, then with
+    --eval-policies their evaluations' policies) before any of the earlier start's runs' files, which the earlier
+    call's policies.tar brought back already: here one run's files fill the one tar, and they are the new run's; the
+    earlier run's are named left out."""
     import subprocess
     import tarfile
 
     out = tmp_path / "out"
     out.mkdir()
     body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; esac; shift; done; '
-            'mkdir -p "$run"; echo rows >"$run/eval.csv"; head -c 600000 /dev/zero >"$run/policy.npz"')
+            f'mkdir -p "$run"; echo rows >"$run/eval.csv"; {writes}')
     env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1", POLICY_TARS="1")
     for name in ("a-earlier", "z-later"):  # the earlier start's run comes first by name
         jobs = tmp_path / f"{name}.txt"
@@ -553,37 +565,11 @@ def test_device_batch_packs_the_latest_starts_policies_first(tmp_path):
                                 text=True, timeout=60, env=env, cwd=tmp_path)
         assert result.returncode == 0, result.stderr
         with tarfile.open(out / "policies.tar") as tar:
-            assert tar.getnames() == [f"./{name}/policy.npz"]
-    assert "policy left out (over POLICY_TARS=1 tars of POLICY_MIB=1): ./a-earlier/policy.npz" in (
-        out / "report.txt").read_text()
-
-
-def test_device_batch_packs_the_latest_starts_evaluation_policies_before_the_earlier_starts(tmp_path):
-    """With --eval-policies, a second start on the same machine packs its runs' policy.npz and then their evaluations'
-    policies before any of the earlier start's files (returned by the earlier call already): the earlier run's
-    policy.npz and evaluations are the ones left out, not the new run's evaluations."""
-    import subprocess
-    import tarfile
-
-    out = tmp_path / "out"
-    out.mkdir()
-    body = ('while [ $# -gt 0 ]; do case $1 in --out) run=$2;; esac; shift; done; '
-            'mkdir -p "$run/policies"; echo rows >"$run/eval.csv"; head -c 300000 /dev/zero >"$run/policy.npz"; '
-            'for step in 600 1200; do head -c 300000 /dev/zero >"$run/policies/policy-$step.npz"; done')
-    env = _fake_gpu_machine(tmp_path, 1, body, OUT=str(out), POLICY_MIB="1", POLICY_TARS="1")
-    for name in ("a-earlier", "z-later"):  # three files of a run fit one tar of 1 MiB, four do not
-        jobs = tmp_path / f"{name}.txt"
-        jobs.write_text(f"{name} --steps 10\n")
-        result = subprocess.run(["bash", DEVICE_BATCH, "start", str(jobs), "60", "30"], capture_output=True,
-                                text=True, timeout=60, env=env, cwd=tmp_path)
-        assert result.returncode == 0, result.stderr
-        with tarfile.open(out / "policies.tar") as tar:
-            assert tar.getnames() == [f"./{name}/policy.npz", f"./{name}/policies/policy-1200.npz",
-                                      f"./{name}/policies/policy-600.npz"]
+            assert tar.getnames() == [f"./{name}/{file}" for file in files]
     report = (out / "report.txt").read_text()
-    for left_out in ("policy.npz", "policies/policy-1200.npz", "policies/policy-600.npz"):
-        assert f"policy left out (over POLICY_TARS=1 tars of POLICY_MIB=1): ./a-earlier/{left_out}" in report
-    assert report.count("left out") == 3
+    for file in files:
+        assert f"policy left out (over POLICY_TARS=1 tars of POLICY_MIB=1): ./a-earlier/{file}" in report
+    assert report.count("left out") == len(files)
 
 
 def test_device_batch_sends_a_policy_over_the_limit_in_parts_that_ingest_batch_joins(tmp_path):
