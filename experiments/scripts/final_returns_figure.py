@@ -16,7 +16,6 @@ Writes ``PREFIX.csv`` (one row per run: line, position, run, env_step, return, a
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 
 import numpy as np
@@ -24,18 +23,12 @@ import numpy as np
 
 def last_evaluation(run: str) -> tuple[int, float]:
     """(env_step, mean return) of ``run``'s last evaluation in its ``eval.csv``, the mean as the run's summary gives
-    it (:func:`lnnmpc.train.report.eval_table`); ValueError naming the run where the file is missing or holds no
-    rows."""
-    from lnnmpc.train import runfolder
-    from lnnmpc.train.report import eval_table
+    it (:func:`lnnmpc.analysis.line_measures.run_finals`); ValueError naming the run where the file is missing or
+    holds no rows."""
+    from lnnmpc.analysis.line_measures import run_finals
 
-    path = os.path.join(run, "eval.csv")
-    if not os.path.isfile(path):
-        raise ValueError(f"{run!r} has no eval.csv")
-    table = eval_table(runfolder.read_csv(path))
-    if not table:
-        raise ValueError(f"{path!r} holds no evaluation")
-    return table[-1]["env_step"], table[-1]["mean"]
+    step, mean, _ = run_finals(run)
+    return step, mean
 
 
 def parse_lines(items: list[str]) -> dict[str, list[str]]:
