@@ -21,29 +21,6 @@ import sys
 import numpy as np
 
 
-def last_evaluation(run: str) -> tuple[int, float]:
-    """(env_step, mean return) of ``run``'s last evaluation in its ``eval.csv``, the mean as the run's summary gives
-    it (:func:`lnnmpc.analysis.line_measures.run_finals`); ValueError naming the run where the file is missing or
-    holds no rows."""
-    from lnnmpc.analysis.line_measures import run_finals
-
-    step, mean, _ = run_finals(run)
-    return step, mean
-
-
-def parse_lines(items: list[str]) -> dict[str, list[str]]:
-    """``LABEL=RUN[,RUN...]`` items -> {label: runs}, in order; ValueError naming a malformed or repeated item."""
-    lines: dict[str, list[str]] = {}
-    for item in items:
-        label, sep, runs = item.partition("=")
-        if not sep or not label or not runs:
-            raise ValueError(f"--line takes LABEL=RUN[,RUN...], got {item!r}")
-        if label in lines:
-            raise ValueError(f"--line {label!r} given twice")
-        lines[label] = runs.split(",")
-    return lines
-
-
 def parse_references(items: list[str]) -> dict[str, float]:
     references = {}
     for item in items:
@@ -63,13 +40,16 @@ def run_name(position: int, names: list[str] | None) -> str:
 
 
 def final_returns(lines: dict[str, list[str]]) -> list[dict]:
-    """One row per run: line, position (0-based within its line), run, env_step, return, line_mean."""
+    """One row per run: line, position (0-based within its line), run, env_step, return (its last evaluation's
+    mean, as its summary gives it: :func:`lnnmpc.analysis.line_measures.run_finals`), line_mean."""
+    from lnnmpc.analysis.line_measures import run_finals
+
     rows = []
     for label, runs in lines.items():
-        values = [last_evaluation(run) for run in runs]
-        mean = float(np.mean([value for _, value in values]))
+        values = [run_finals(run) for run in runs]  # (step, last evaluation's mean, the last three's mean)
+        mean = float(np.mean([value for _, value, _ in values]))
         rows += [{"line": label, "position": k, "run": run, "env_step": step, "return": value, "line_mean": mean}
-                 for k, (run, (step, value)) in enumerate(zip(runs, values, strict=True))]
+                 for k, (run, (step, value, _)) in enumerate(zip(runs, values, strict=True))]
     return rows
 
 
@@ -119,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", required=True, help="PREFIX of PREFIX.csv and PREFIX.png")
     args = parser.parse_args(argv)
     try:
+        from lnnmpc.analysis.line_measures import parse_lines
+
         rows = final_returns(parse_lines(args.line))
         references = parse_references(args.reference)
     except ValueError as error:
