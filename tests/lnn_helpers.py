@@ -22,6 +22,16 @@ def quick_jit(fn, **kwargs):
     return jax.jit(fn, compiler_options={"xla_backend_optimization_level": 0}, **kwargs)
 
 
+def perturbed_state(agent, key):
+    """``agent.init(key)`` with every parameter moved off its initial value (zero-initialised heads would make every
+    action 0, and comparisons of actions empty)."""
+    state = agent.init(key)
+    leaves, tree = jax.tree_util.tree_flatten(state.params)
+    keys = jax.random.split(jax.random.fold_in(key, 1), len(leaves))
+    moved = [p + 0.3 * jax.random.normal(k, p.shape, p.dtype) for p, k in zip(leaves, keys, strict=True)]
+    return state.replace(params=jax.tree_util.tree_unflatten(tree, moved))
+
+
 # The agent tests' shapes: observations of 5, actions of 2, batches of 8 windows.
 OBS, ACT, B = 5, 2, 8
 

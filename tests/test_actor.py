@@ -9,21 +9,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from lnn_helpers import perturbed_state
 
 from lnnmpc.agents.actor import ACTORS, PriorActing, with_actor
 from lnnmpc.agents.registry import acting_latent, make_agent
 
 OBS_DIM, ACT_DIM = 5, 2
-
-
-def _perturbed(agent, key):
-    """An initial state whose every parameter is moved off its initial value (zero-initialised heads would make
-    every action 0 and the comparisons below empty)."""
-    state = agent.init(key)
-    leaves, tree = jax.tree_util.tree_flatten(state.params)
-    keys = jax.random.split(jax.random.fold_in(key, 1), len(leaves))
-    moved = [p + 0.3 * jax.random.normal(k, p.shape, p.dtype) for p, k in zip(leaves, keys, strict=True)]
-    return state.replace(params=jax.tree_util.tree_unflatten(tree, moved))
 
 
 def _prior_mean_action(agent, params, z):
@@ -34,7 +25,7 @@ def _prior_mean_action(agent, params, z):
 @pytest.mark.parametrize("name", ["tdmpc2", "cfc-zp-det", "ltc-op-stoch"])
 def test_prior_acts_with_tanh_of_its_mean_at_the_planners_latent(name):
     agent = make_agent(name, OBS_DIM, ACT_DIM, small=True)
-    state = _perturbed(agent, jax.random.key(0))
+    state = perturbed_state(agent, jax.random.key(0))
     obs = jax.random.normal(jax.random.key(2), (3, OBS_DIM))
     prior = with_actor(agent, "prior")
     carry = agent.initial_carry()
@@ -61,7 +52,7 @@ def test_prior_acts_with_tanh_of_its_mean_at_the_planners_latent(name):
 
 def test_exploring_prior_samples_in_bounds_and_by_its_key():
     agent = make_agent("tdmpc2", OBS_DIM, ACT_DIM, small=True)
-    state = _perturbed(agent, jax.random.key(0))
+    state = perturbed_state(agent, jax.random.key(0))
     obs, carry, first = jnp.ones((OBS_DIM,)), agent.initial_carry(), jnp.asarray(True)
     prior = with_actor(agent, "prior")
     a = [prior.act(state, carry, obs, jnp.asarray(1.0), jax.random.key(k), explore=True, first_step=first)[0]

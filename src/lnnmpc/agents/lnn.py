@@ -351,15 +351,23 @@ class LNNTDMPC2(TDMPC2):
             ) -> tuple[jax.Array, LNNCarry]:
         """Encode o_t (d,) after Δt_t (), plan with MPPI from h_t; returns (action (A,), next carry);
         ``explore_noise`` (A,): :func:`mppi_plan`'s."""
+        action, carry, _ = self.act_planned(state, carry, obs, dt, key, explore=explore, first_step=first_step,
+                                            explore_noise=explore_noise)
+        return action, carry
+
+    def act_planned(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
+                    explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
+                    ) -> tuple[jax.Array, LNNCarry, dict]:
+        """:meth:`act` plus the planner's ``info`` (:func:`mppi_plan`'s: the final ``std`` (horizon, A), ...)."""
         params = state.params
         carry = self._start(carry, first_step)
         h = self._encode_one(params, carry, obs, dt)
         k_plan, k_model = jax.random.split(key)
         latent = {"z": self.latent_of(params, h, obs), "key": jax.random.key_data(k_model)}
-        action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params),
-                                    latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step,
-                                    explore_noise=explore_noise)
-        return action, LNNCarry(h=h, prev_action=action, plan_mean=mean)
+        action, mean, info = mppi_plan(self.config.planner, self.planning_model(params),
+                                       latent, carry.plan_mean, k_plan, explore=explore, first_step=first_step,
+                                       explore_noise=explore_noise)
+        return action, LNNCarry(h=h, prev_action=action, plan_mean=mean), info
 
     def act_prior(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
                   explore: bool, first_step: jax.Array) -> tuple[jax.Array, LNNCarry]:

@@ -325,6 +325,13 @@ class TDMPC2:
             ) -> tuple[jax.Array, jax.Array]:
         """Protocol act: MPPI action (A,) for one observation (d,) and the next carry (the plan mean);
         ``explore_noise`` (A,): :func:`mppi_plan`'s."""
+        return self.plan(state, obs, carry, key, explore=explore, first_step=first_step,
+                         explore_noise=explore_noise)[:2]
+
+    def act_planned(self, state: AgentState, carry: jax.Array, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
+                    explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
+                    ) -> tuple[jax.Array, jax.Array, dict]:
+        """:meth:`act` plus the planner's ``info`` (:func:`mppi_plan`'s: the final ``std`` (horizon, A), ...)."""
         return self.plan(state, obs, carry, key, explore=explore, first_step=first_step, explore_noise=explore_noise)
 
     def act_prior(self, state: AgentState, carry: jax.Array, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
@@ -351,10 +358,11 @@ class TDMPC2:
         )
 
     def plan(self, state: AgentState, obs: jax.Array, prev_mean: jax.Array, key: jax.Array, *, explore: bool,
-             first_step: jax.Array, explore_noise: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
-        """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A))."""
+             first_step: jax.Array, explore_noise: jax.Array | None = None
+             ) -> tuple[jax.Array, jax.Array, dict]:
+        """MPPI action (A,) for one observation (d,); returns (action, plan mean (horizon, A), :func:`mppi_plan`'s
+        info)."""
         params = state.params
         z = self._apply(params, obs, method="encode")
-        action, mean, _ = mppi_plan(self.config.planner, self.planning_model(params), z, prev_mean, key,
-                                    explore=explore, first_step=first_step, explore_noise=explore_noise)
-        return action, mean
+        return mppi_plan(self.config.planner, self.planning_model(params), z, prev_mean, key,
+                         explore=explore, first_step=first_step, explore_noise=explore_noise)

@@ -1,0 +1,154 @@
+"""``python -m lnnmpc.analysis.plan_std``: how wide MPPI's search ends when a trained agent acts.
+
+    python -m lnnmpc.analysis.plan_std RUN [RUN ...] [--checkpoint STEP] [--episodes 4] [--seed 0]
+        [--floors 0.2,0.5] [--out CSV]
+
+While it trains, an agent adds ``max(std[0], explore_min_std)`` times the exploration noise to each planned action
+(:mod:`lnnmpc.agents.mppi`): ``std[0]`` is the std of the first planned action when MPPI ends its search. The trainer
+does not log it. This command plays a run's policy (the newest checkpoint, ``policy.npz`` or evaluation snapshot,
+or ``--checkpoint``'s) for deterministic episodes on MJX: the episodes its training evaluations play with the key
+``--seed`` (:func:`lnnmpc.train.loop.play_episodes`), under the run's evaluation corruptions. It records ``std[0]``,
+averaged over the action's dimensions, at every agent step. For each run and trained seed it prints the std's 10th,
+50th and 90th percentiles and the share of steps under each of ``--floors``. That share is how often a floor of
+``explore_min_std`` there would widen the exploration noise. The episodes play without noise, so they visit the
+evaluation's states, not the exploring ones of training.
+
+``--out`` writes one row per agent step: run, seed, episode, t, std, reward.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from lnnmpc.train.config import ConfigError
+
+QUANTILES = (10, 50, 90)
+
+
+class StdRecording:
+    """``agent`` acting as usual, its carry extended by the planner's final ``std[0]`` (averaged over the action's
+    dimensions, a scalar): ``(agent carry, std)``. Needs the agent's ``act_planned`` (MPPI's info)."""
+
+    def __init__(self, agent: Any):
+        if not hasattr(agent, "act_planned"):
+            raise ValueError(f"{type(agent).__name__} does not plan with MPPI (no act_planned)")
+        self.agent = agent
+
+    def initial_carry(self) -> tuple[Any, jax.Array]:
+        return self.agent.initial_carry(), jnp.zeros(())
+
+    def act(self, state, carry, obs, dt, key, *, explore: bool, first_step):
+        """The agent's action (A,) and ``(its next carry, std[0].mean())``."""
+        action, nxt, info = self.agent.act_planned(state, carry[0], obs, dt, key, explore=explore,
+                                                   first_step=first_step)
+        return action, (nxt, info["std"][0].mean())
+
+
+def plan_std_episodes(agent: Any, agent_state: Any, env: Any, key: jax.Array, episodes: int,
+                      steps: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Deterministic episodes of ``agent`` (one trained seed's ``agent_state``) on ``env``, as
+    :func:`lnnmpc.train.loop.play_episodes` plays them; returns the returns (episodes,), the planner's std[0]
+    (T, episodes) and the rewards (T, episodes)."""
+    from lnnmpc.train.loop import play_episodes
+
+    def record(state, carry, action, nxt):
+        return carry[1], nxt.reward
+
+    program = jax.jit(lambda s, k: play_episodes(StdRecording(agent), s, env, k, episodes, steps=steps,
+                                                 record=record))
+    returns, (std, reward) = program(agent_state, key)
+    return np.asarray(returns), np.asarray(std), np.asarray(reward)
+
+
+def std_summary(std: np.ndarray, floors: Sequence[float]) -> dict[str, float]:
+    """Percentiles :data:`QUANTILES` of ``std`` (any shape) as ``p10``... and, per floor f, ``under_<f>``: the share
+    of its values below f."""
+    values = np.asarray(std, np.float64).ravel()
+    if values.size == 0:
+        raise ValueError("no std values to summarise")
+    out = {f"p{q}": float(np.percentile(values, q)) for q in QUANTILES}
+    out.update({f"under_{f:g}": float(np.mean(values < f)) for f in floors})
+    return out
+
+
+def markdown(rows: list[dict], floors: Sequence[float]) -> str:
+    """One table row per (run, seed): episodes, mean return and :func:`std_summary`'s numbers."""
+    head = ["run", "seed", "episodes", "return", *(f"std p{q}" for q in QUANTILES),
+            *(f"share under {f:g}" for f in floors)]
+    lines = ["| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]
+    for r in rows:
+        cells = [r["run"], str(r["seed"]), str(r["episodes"]), f"{r['return']:.1f}",
+                 *(f"{r[f'p{q}']:.3f}" for q in QUANTILES), *(f"{r[f'under_{f:g}']:.2f}" for f in floors)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def parse_floors(text: str) -> tuple[float, ...]:
+    """``"0.2,0.5"`` -> (0.2, 0.5); ConfigError for anything but positive finite numbers."""
+    try:
+        floors = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        floors = ()
+    if not floors or not all(np.isfinite(f) and f > 0 for f in floors):
+        raise ConfigError(f"--floors takes positive numbers separated by commas, got {text!r}")
+    return floors
+
+
+def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command's options (module docstring)."""
+    p = argparse.ArgumentParser(prog="python -m lnnmpc.analysis.plan_std", description=__doc__.split("\n")[0])
+    p.add_argument("runs", nargs="+", help="run folders (config.json and a checkpoint, policy.npz or policies/)")
+    p.add_argument("--checkpoint", type=int, default=None, help="environment step of the policy (default newest)")
+    p.add_argument("--episodes", type=int, default=4, help="episodes per trained seed (default 4)")
+    p.add_argument("--seed", type=int, default=0, help="the episodes' key, as `cli eval --seed` (default 0)")
+    p.add_argument("--floors", default="0.2,0.5", help="explore_min_std values to count steps under")
+    p.add_argument("--out", default=None, help="also write every step to this CSV")
+    return p.parse_args(argv)
+
+
+def run_analysis(args: argparse.Namespace) -> str:
+    """Plays, summarises, writes (with ``--out``) and returns the printed table (ConfigError for bad input)."""
+    from lnnmpc.train import runfolder
+    from lnnmpc.train.config import require_int
+    from lnnmpc.train.evaluate import check_observation_size, load_policy
+    from lnnmpc.train.setup import config_env
+
+    require_int("episodes", args.episodes, 1)
+    floors = parse_floors(args.floors)
+    rows, steps = [], []
+    for run in args.runs:
+        policy = load_policy(run, args.checkpoint)
+        env = config_env(policy.config, policy.config.eval_obs)
+        check_observation_size(env, policy)
+        try:
+            StdRecording(policy.loop.agent)
+        except ValueError as error:
+            raise ConfigError(f"{run!r}: {error}") from None
+        for seed in range(policy.config.seeds):
+            returns, std, reward = plan_std_episodes(policy.loop.agent, policy.seed_state(seed), env,
+                                                     jax.random.key(args.seed), args.episodes)
+            rows.append({"run": run, "seed": seed, "episodes": args.episodes, "return": float(returns.mean()),
+                         **std_summary(std, floors)})
+            steps += [{"run": run, "seed": seed, "episode": e, "t": t, "std": float(std[t, e]),
+                       "reward": float(reward[t, e])} for e in range(std.shape[1]) for t in range(std.shape[0])]
+    if args.out:
+        runfolder.write_csv(args.out, ["run", "seed", "episode", "t", "std", "reward"], steps)
+    return markdown(rows, floors)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    from lnnmpc.train.config import command_status
+
+    args = parse_args(argv)
+    return command_status(lambda: run_analysis(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,95 @@
+"""``lnnmpc.analysis.plan_std``: the planner's final std recorded while an agent acts, without changing how it acts."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import struct
+from lnn_helpers import perturbed_state, quick_jit
+
+from lnnmpc.agents.mppi import mppi_plan
+from lnnmpc.agents.registry import make_agent
+from lnnmpc.analysis import plan_std
+from lnnmpc.train.config import ConfigError
+from lnnmpc.train.loop import play_episodes
+
+OBS_DIM, ACT_DIM = 5, 2
+
+
+@pytest.mark.parametrize("name", ["tdmpc2", "cfc-zp-det"])
+def test_recording_acts_as_the_agent_and_reports_the_first_planned_std(name):
+    agent = make_agent(name, OBS_DIM, ACT_DIM, small=True)
+    state = perturbed_state(agent, jax.random.key(0))
+    recording = plan_std.StdRecording(agent)
+    act = quick_jit(lambda c, o, k, f: agent.act(state, c, o, jnp.asarray(1.0), k, explore=False, first_step=f))
+    record = quick_jit(lambda c, o, k, f: recording.act(state, c, o, jnp.asarray(1.0), k, explore=False,
+                                                        first_step=f))
+    obs = jax.random.normal(jax.random.key(2), (2, OBS_DIM))
+    carry, wrapped = agent.initial_carry(), recording.initial_carry()
+    planner = agent.config.planner
+    for t in range(2):  # two steps: an LNN agent's carry matters in the second
+        first, key = jnp.asarray(t == 0), jax.random.key(10 + t)
+        action, carry = act(carry, obs[t], key, first)
+        same, wrapped = record(wrapped, obs[t], key, first)
+        np.testing.assert_allclose(same, action, rtol=1e-6, atol=1e-7)
+        for a, b in zip(jax.tree_util.tree_leaves(wrapped[0]), jax.tree_util.tree_leaves(carry), strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+        assert planner.min_std <= float(wrapped[1]) <= planner.max_std
+    if name == "tdmpc2":  # the same search run by hand from the encoded observation and the first step's plan mean
+        z = agent._apply(state.params, obs[1], method="encode")
+        by_hand = quick_jit(lambda z, prev, k: mppi_plan(planner, agent.planning_model(state.params), z, prev, k,
+                                                         explore=False, first_step=jnp.asarray(False))[2]["std"])
+        first_mean = act(agent.initial_carry(), obs[0], jax.random.key(10), jnp.asarray(True))[1]
+        np.testing.assert_allclose(float(wrapped[1]), np.asarray(by_hand(z, first_mean, jax.random.key(11)))[0].mean(),
+                                   rtol=1e-5)
+
+
+@struct.dataclass
+class _State:
+    obs: jax.Array
+    dt: jax.Array
+    t: jax.Array
+    reward: jax.Array
+
+
+class _LinearEnv:
+    """A pure-JAX stand-in for an Env (no MuJoCo to compile): x' = 0.9 x + action in every coordinate, reward
+    -|x|^2, 4 agent steps; the interface play_episodes uses (reset, step, episode_length)."""
+
+    episode_length = 4
+
+    def reset(self, key):
+        return _State(obs=jax.random.normal(key, (OBS_DIM,)), dt=jnp.ones(()), t=jnp.zeros((), jnp.int32),
+                      reward=jnp.zeros(()))
+
+    def step(self, state, action):
+        obs = 0.9 * state.obs + jnp.pad(action, (0, OBS_DIM - ACT_DIM))
+        return state.replace(obs=obs, t=state.t + 1, reward=-jnp.sum(obs ** 2))
+
+
+def test_recorded_episodes_return_what_play_episodes_returns():
+    env = _LinearEnv()
+    agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
+    state = perturbed_state(agent, jax.random.key(3))
+    returns, std, reward = plan_std.plan_std_episodes(agent, state, env, jax.random.key(4), episodes=2)
+    plain, _ = quick_jit(lambda s, k: play_episodes(agent, s, env, k, 2))(state, jax.random.key(4))
+    assert std.shape == reward.shape == (4, 2)
+    np.testing.assert_allclose(returns, np.asarray(plain), rtol=1e-5)
+    np.testing.assert_allclose(reward.sum(axis=0), returns, rtol=1e-5)
+    assert np.all((std >= agent.config.planner.min_std) & (std <= agent.config.planner.max_std))
+    assert np.ptp(std) > 0  # the std moves with the state: recorded per step, not one constant
+
+
+def test_summary_and_option_checks():
+    summary = plan_std.std_summary(np.array([[0.1, 0.3], [0.6, 1.0]]), (0.2, 0.5))
+    assert summary == pytest.approx({"p10": 0.16, "p50": 0.45, "p90": 0.88, "under_0.2": 0.25, "under_0.5": 0.5})
+    with pytest.raises(ValueError, match="no std values"):
+        plan_std.std_summary(np.array([]), (0.2,))
+    assert plan_std.parse_floors("0.2,0.5") == (0.2, 0.5)
+    for bad in ("", "0.2,x", "-1", "0", "nan"):
+        with pytest.raises(ConfigError, match="--floors takes positive numbers separated by commas"):
+            plan_std.parse_floors(bad)
+    with pytest.raises(ValueError, match="object does not plan with MPPI"):
+        plan_std.StdRecording(object())
