@@ -56,9 +56,10 @@ class _State:
 
 class _LinearEnv:
     """A pure-JAX stand-in for an Env (no MuJoCo to compile): x' = 0.9 x + action in every coordinate, reward
-    -|x|^2, 4 agent steps; the interface play_episodes uses (reset, step, episode_length)."""
+    -|x|^2, 4 agent steps; the interface play_episodes uses (reset, step, episode_length) and the attributes that
+    name an Env's programs (lnnmpc.train.evaluate.SameProgram)."""
 
-    episode_length = 4
+    episode_length, spec, action_repeat, physics_options, corruption = 4, "linear", 1, (), ()
 
     def reset(self, key):
         return _State(obs=jax.random.normal(key, (OBS_DIM,)), dt=jnp.ones(()), t=jnp.zeros((), jnp.int32),

@@ -19,6 +19,7 @@ evaluation's states, not the exploring ones of training.
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 from collections.abc import Sequence
 from typing import Any
@@ -51,19 +52,27 @@ class StdRecording:
         return action, (nxt, info["std"][0].mean())
 
 
-def plan_std_episodes(agent: Any, agent_state: Any, env: Any, key: jax.Array, episodes: int,
-                      steps: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Deterministic episodes of ``agent`` (one trained seed's ``agent_state``) on ``env``, as
-    :func:`lnnmpc.train.loop.play_episodes` plays them; returns the returns (episodes,), the planner's std[0]
-    (T, episodes) and the rewards (T, episodes)."""
+@functools.lru_cache(maxsize=4)
+def _std_program(pair: Any, episodes: int, steps: int | None):
+    """The compiled episodes of ``pair`` (a :class:`lnnmpc.train.evaluate.SameProgram`: runs of one configuration
+    share it, as their evaluations do)."""
     from lnnmpc.train.loop import play_episodes
 
     def record(state, carry, action, nxt):
         return carry[1], nxt.reward
 
-    program = jax.jit(lambda s, k: play_episodes(StdRecording(agent), s, env, k, episodes, steps=steps,
-                                                 record=record))
-    returns, (std, reward) = program(agent_state, key)
+    return jax.jit(lambda s, k: play_episodes(StdRecording(pair.agent), s, pair.env, k, episodes, steps=steps,
+                                              record=record))
+
+
+def plan_std_episodes(agent: Any, agent_state: Any, env: Any, key: jax.Array, episodes: int,
+                      steps: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Deterministic episodes of ``agent`` (one trained seed's ``agent_state``) on ``env``, as
+    :func:`lnnmpc.train.loop.play_episodes` plays them; returns the returns (episodes,), the planner's std[0]
+    (T, episodes) and the rewards (T, episodes)."""
+    from lnnmpc.train.evaluate import SameProgram
+
+    returns, (std, reward) = _std_program(SameProgram(agent, env), episodes, steps)(agent_state, key)
     return np.asarray(returns), np.asarray(std), np.asarray(reward)
 
 
