@@ -6,12 +6,13 @@
 While it trains, an agent adds ``max(std[0], explore_min_std)`` times the exploration noise to each planned action
 (:mod:`lnnmpc.agents.mppi`): ``std[0]`` is the std of the first planned action when MPPI ends its search. The trainer
 does not log it. This command plays a run's policy (the newest checkpoint, ``policy.npz`` or evaluation snapshot,
-or ``--checkpoint``'s) for deterministic episodes on MJX: the episodes its training evaluations play with the key
-``--seed`` (:func:`lnnmpc.train.loop.play_episodes`), under the run's evaluation corruptions. It records ``std[0]``,
-averaged over the action's dimensions, at every agent step. For each run and trained seed it prints the std's 10th,
-50th and 90th percentiles and the share of steps under each of ``--floors``. That share is how often a floor of
-``explore_min_std`` there would widen the exploration noise. The episodes play without noise, so they visit the
-evaluation's states, not the exploring ones of training.
+or ``--checkpoint``'s) for deterministic episodes on MJX under the run's evaluation corruptions: the episodes that
+``cli eval --seed`` plays (each trained seed's key split from ``key(--seed)``;
+:func:`lnnmpc.train.loop.play_episodes`). It records ``std[0]``, averaged over the action's dimensions, at every
+agent step. For each run and trained seed it prints the std's 10th, 50th and 90th percentiles and the share of steps
+under each of ``--floors``. That share is how often a floor of ``explore_min_std`` there would widen the
+exploration noise. The episodes play without noise, so they visit the evaluation's states, not the exploring ones
+of training.
 
 ``--out`` writes one row per agent step: run, seed, episode, t, std, reward.
 """
@@ -140,9 +141,10 @@ def run_analysis(args: argparse.Namespace) -> str:
             StdRecording(policy.loop.agent)
         except ValueError as error:
             raise ConfigError(f"{run!r}: {error}") from None
+        keys = jax.random.split(jax.random.key(args.seed), policy.config.seeds)  # cli eval's per-seed keys
         for seed in range(policy.config.seeds):
-            returns, std, reward = plan_std_episodes(policy.loop.agent, policy.seed_state(seed), env,
-                                                     jax.random.key(args.seed), args.episodes)
+            returns, std, reward = plan_std_episodes(policy.loop.agent, policy.seed_state(seed), env, keys[seed],
+                                                     args.episodes)
             rows.append({"run": run, "seed": seed, "episodes": args.episodes, "return": float(returns.mean()),
                          **std_summary(std, floors)})
             steps += [{"run": run, "seed": seed, "episode": e, "t": t, "std": float(std[t, e]),
