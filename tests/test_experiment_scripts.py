@@ -247,7 +247,8 @@ def test_the_acrobot_levers_figure_regenerates_from_the_committed_runs(tmp_path)
     """experiments/scripts/acrobot_levers_figure.sh rebuilds the committed figure's CSV byte for byte from the
     committed runs (their eval.csv), so the figure states what the runs hold (RESULTS.md [102]: the recipe, gamma
     0.985, launched again 646.5; [104]: with the latent head's observation skip 641.3; [106]: with a CfC backbone 256
-    wide 664.5, launched again 638.0 [107]; [108]: 512 wide 647.9)."""
+    wide 664.5, launched again 638.0 [107]; [108]: 512 wide 647.9; [109]: 512 windows per update 624.3; [110]: MPPI
+    with 12 iterations while training 636.2)."""
     import subprocess
     import sys
 
@@ -263,3 +264,5 @@ def test_the_acrobot_levers_figure_regenerates_from_the_committed_runs(tmp_path)
     assert "every 6, gamma 0.985, CfC backbone 256 [106]: 639.4 / 655.2 / 698.8, mean 664.5" in done.stdout
     assert "every 6, gamma 0.985, CfC backbone 256 again [107]: 623.2 / 636.3 / 654.4, mean 638.0" in done.stdout
     assert "every 6, gamma 0.985, CfC backbone 512 [108]: 621.6 / 637.9 / 684.3, mean 647.9" in done.stdout
+    assert "every 6, gamma 0.985, 512 windows/update [109]: 620.2 / 629.6 / 623.2, mean 624.3" in done.stdout
+    assert "every 6, gamma 0.985, MPPI 12 iterations [110]: 616.7 / 631.8 / 660.0, mean 636.2" in done.stdout

@@ -30,6 +30,8 @@ runs() {  # FOLDER NAME: FOLDER/NAME1,FOLDER/NAME2,FOLDER/NAME3 (NAME ends in "s
     --line "every 6, gamma 0.985, CfC backbone 256 [106]=$(runs backbone256-h100-200k acrobot-recipe-bb256-seed)" \
     --line "every 6, gamma 0.985, CfC backbone 256 again [107]=$(runs backbone256-relaunch-h100-200k acrobot-recipe-bb256-relaunch-seed)" \
     --line "every 6, gamma 0.985, CfC backbone 512 [108]=$(runs backbone512-h100-200k acrobot-recipe-bb512-seed)" \
+    --line "every 6, gamma 0.985, 512 windows/update [109]=$(runs batch512-h100-200k acrobot-recipe-batch512-seed)" \
+    --line "every 6, gamma 0.985, MPPI 12 iterations [110]=$(runs iter12-h100-200k acrobot-recipe-iter12-seed)" \
     --bar 700 --reference "TD-MPC2 [21]=278.1" --run-names "master seed 1,master seed 2,master seed 3" \
     --title "acrobot-swingup, cfc-zp-det, master seeds 1-3 at ~200K: the lines since the learning-rate decay" \
     --out "$out"
