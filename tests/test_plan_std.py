@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -60,6 +62,7 @@ class _LinearEnv:
     name an Env's programs (lnnmpc.train.evaluate.SameProgram)."""
 
     episode_length, spec, action_repeat, physics_options, corruption = 4, "linear", 1, (), ()
+    observation_size, action_size = OBS_DIM, ACT_DIM
 
     def reset(self, key):
         return _State(obs=jax.random.normal(key, (OBS_DIM,)), dt=jnp.ones(()), t=jnp.zeros((), jnp.int32),
@@ -94,3 +97,40 @@ def test_summary_and_option_checks():
             plan_std.parse_floors(bad)
     with pytest.raises(ValueError, match="object does not plan with MPPI"):
         plan_std.StdRecording(object())
+
+
+def test_command_plays_cli_evals_episodes_for_each_trained_seed(tmp_path, monkeypatch, capsys):
+    """``main`` over a run of 2 trained seeds (its policy and environment given by the two loaders it calls, here
+    the toy environment: no MuJoCo to compile): each seed's episodes are those `cli eval` plays (the returns of
+    ``mjx_evaluator``, its program, with the same key), every agent step is a CSV row, the table holds each seed's
+    mean return and share under the floors, and bad options exit with status 2."""
+    import types
+
+    from lnnmpc.train import evaluate, setup
+
+    env = _LinearEnv()
+    agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
+    states = [perturbed_state(agent, jax.random.key(k)) for k in (5, 6)]
+    seeds = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *states)  # the trained seeds' axis
+    policy = evaluate.Policy(config=types.SimpleNamespace(seeds=2, eval_obs={}),
+                             loop=types.SimpleNamespace(agent=agent, env=env), agent_state=seeds, checkpoint=8)
+    monkeypatch.setattr(evaluate, "load_policy", lambda run, checkpoint=None: policy)
+    monkeypatch.setattr(setup, "config_env", lambda config, options: env)
+    out = tmp_path / "std.csv"
+    assert plan_std.main(["my-run", "--episodes", "3", "--seed", "7", "--floors", "0.1", "--out", str(out)]) == 0
+    table = capsys.readouterr().out
+    rows = list(csv.DictReader(open(out)))
+    assert len(rows) == 2 * 3 * 4 and {r["run"] for r in rows} == {"my-run"}
+    expected = evaluate.mjx_evaluator(agent, env, episodes=3, seeds=2)(seeds, jax.random.key(7))  # (2, 3)
+    for seed in (0, 1):
+        mine = [r for r in rows if r["seed"] == str(seed)]
+        totals = [sum(float(r["reward"]) for r in mine if r["episode"] == str(e)) for e in range(3)]
+        np.testing.assert_allclose(totals, expected[seed], rtol=1e-5)
+        line = next(x for x in table.splitlines() if x.startswith(f"| my-run | {seed} | 3 | "))
+        assert float(line.split(" | ")[3]) == pytest.approx(np.mean(totals), abs=0.051)
+        share = np.mean([float(r["std"]) < 0.1 for r in mine])
+        assert line.split(" | ")[-1].rstrip(" |") == f"{share:.2f}"
+    assert plan_std.main(["my-run", "--floors", "0.2,x"]) == 2
+    assert "--floors takes positive numbers separated by commas, got '0.2,x'" in capsys.readouterr().err
+    assert plan_std.main(["my-run", "--episodes", "0"]) == 2
+    assert "episodes must be an integer >= 1, got 0" in capsys.readouterr().err

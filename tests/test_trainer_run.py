@@ -394,40 +394,6 @@ def test_mjx_evaluator_replays_each_training_evaluation(reference, cache):
         np.testing.assert_allclose(replayed, logged, rtol=1e-4, atol=1e-2, err_msg=f"evaluation at {step}")
 
 
-def test_plan_std_plays_a_run_folders_policy(reference, tmp_path, capsys, cache):
-    """``python -m lnnmpc.analysis.plan_std`` on the reference run: `cli eval`'s 4 episodes per trained seed at
-    checkpoint 1,450 (the episodes of ``lnnmpc.evaluate``, whose program the test above compiled), every agent
-    step's std in the CSV, each seed's return in the table the mean of its episodes' CSV rewards, and a bad
-    ``--floors`` refused with exit status 2."""
-    import lnnmpc
-    from lnnmpc.analysis import plan_std
-    from lnnmpc.train.setup import enable_compile_cache
-
-    enable_compile_cache(cache)
-    out = tmp_path / "std.csv"
-    args = [str(reference), "--episodes", "4", "--checkpoint", "1450", "--floors", "0.2,0.5", "--out", str(out)]
-    assert plan_std.main(args) == 0
-    table = capsys.readouterr().out
-    rows = _rows(out)
-    assert sorted({(r["seed"], r["episode"]) for r in rows}) == [(s, e) for s in "01" for e in "0123"]
-    assert sorted(int(r["t"]) for r in rows if r["seed"] == "0" and r["episode"] == "0") == list(range(500))
-    evaluated = lnnmpc.evaluate(str(reference), episodes=4, checkpoint=1450, verbose=False,
-                                out=str(tmp_path / "eval.csv")).returns  # (2, 4)
-    totals = np.array([[sum(float(r["reward"]) for r in rows if r["seed"] == s and r["episode"] == e) for e in "0123"]
-                       for s in "01"])
-    # Another program (it records the std) whose round-off a chaotic episode may amplify: on this CPU three of seed
-    # 0's episodes agreed to 2e-6 and one ended 24.7 apart. Other keys than eval's would leave none in agreement.
-    assert np.isclose(totals, evaluated, rtol=1e-3, atol=1e-2).sum() >= 4, (totals, evaluated)
-    for seed in ("0", "1"):
-        line = next(x for x in table.splitlines() if x.startswith(f"| {reference} | {seed} | 4 | "))
-        assert float(line.split(" | ")[3]) == pytest.approx(totals[int(seed)].mean(), abs=0.051)
-        stds = np.array([float(r["std"]) for r in rows if r["seed"] == seed])
-        assert line.split(" | ")[-1].rstrip(" |") == f"{np.mean(stds < 0.5):.2f}"
-    assert "| std p10 | std p50 | std p90 | share under 0.2 | share under 0.5 |" in table
-    assert plan_std.main([str(reference), "--floors", "0.2,x"]) == 2
-    assert "--floors takes positive numbers separated by commas, got '0.2,x'" in capsys.readouterr().err
-
-
 def _cli_in_process(capsys, *args: str, refused: bool = False) -> tuple[str, str]:
     """The CLI run in this process on ``args`` (as ``make eval`` runs it, without a Python start-up and imports of
     its own): its stdout and stderr. It must succeed (no SystemExit), or with ``refused`` exit with status 2."""
