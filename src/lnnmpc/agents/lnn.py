@@ -346,19 +346,12 @@ class LNNTDMPC2(TDMPC2):
             policy=lambda lat, k: self._policy_sample(params, lat["z"], k).action,
         )
 
-    def act(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
-            explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
-            ) -> tuple[jax.Array, LNNCarry]:
-        """Encode o_t (d,) after Δt_t (), plan with MPPI from h_t; returns (action (A,), next carry);
-        ``explore_noise`` (A,): :func:`mppi_plan`'s."""
-        action, carry, _ = self.act_planned(state, carry, obs, dt, key, explore=explore, first_step=first_step,
-                                            explore_noise=explore_noise)
-        return action, carry
-
     def act_planned(self, state: AgentState, carry: LNNCarry, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
                     explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
                     ) -> tuple[jax.Array, LNNCarry, dict]:
-        """:meth:`act` plus the planner's ``info`` (:func:`mppi_plan`'s: the final ``std`` (horizon, A), ...)."""
+        """Encode o_t (d,) after Δt_t (), plan with MPPI from h_t; returns (action (A,), next carry, the planner's
+        ``info``: :func:`mppi_plan`'s, the final ``std`` (horizon, A), ...); ``explore_noise`` (A,):
+        :func:`mppi_plan`'s. The inherited :meth:`act` is this without the info."""
         params = state.params
         carry = self._start(carry, first_step)
         h = self._encode_one(params, carry, obs, dt)

@@ -324,9 +324,10 @@ class TDMPC2:
             explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
             ) -> tuple[jax.Array, jax.Array]:
         """Protocol act: MPPI action (A,) for one observation (d,) and the next carry (the plan mean);
-        ``explore_noise`` (A,): :func:`mppi_plan`'s."""
-        return self.plan(state, obs, carry, key, explore=explore, first_step=first_step,
-                         explore_noise=explore_noise)[:2]
+        ``explore_noise`` (A,): :func:`mppi_plan`'s. :meth:`act_planned` without the planner's info (a subclass that
+        acts otherwise overrides ``act_planned`` alone)."""
+        return self.act_planned(state, carry, obs, dt, key, explore=explore, first_step=first_step,
+                                explore_noise=explore_noise)[:2]
 
     def act_planned(self, state: AgentState, carry: jax.Array, obs: jax.Array, dt: jax.Array, key: jax.Array, *,
                     explore: bool, first_step: jax.Array, explore_noise: jax.Array | None = None
