@@ -26,7 +26,7 @@ import sys
 import numpy as np
 
 from lnnmpc.train import runfolder
-from lnnmpc.train.config import ConfigError
+from lnnmpc.train.config import ConfigError, command_status
 from lnnmpc.train.paired import read_episode_returns
 from lnnmpc.train.report import eval_table
 
@@ -155,18 +155,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pool", action="append", default=[], metavar="LABEL=LINE+LINE[+...]")
     parser.add_argument("--out", default=None, help="also write the table to this file")
     args = parser.parse_args(argv)
-    try:
+
+    def tabulate() -> str:
         lines = parse_lines(args.line)
         measures = parse_csvs(args.csv, lines)
         pools = parse_pools(args.pool, lines)
         table = measures_table(line_values(lines, measures), pools, list(measures))
-    except ConfigError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    sys.stdout.write(table)
-    if args.out:
-        runfolder.write_text(args.out, table)
-    return 0
+        if args.out:
+            runfolder.write_text(args.out, table)
+        return table.removesuffix("\n")  # command_status ends it with its newline
+
+    return command_status(tabulate)
 
 
 if __name__ == "__main__":
