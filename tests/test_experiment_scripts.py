@@ -248,7 +248,7 @@ def test_the_acrobot_levers_figure_regenerates_from_the_committed_runs(tmp_path)
     committed runs (their eval.csv), so the figure states what the runs hold (RESULTS.md [102]: the recipe, gamma
     0.985, launched again 646.5; [104]: with the latent head's observation skip 641.3; [106]: with a CfC backbone 256
     wide 664.5, launched again 638.0 [107]; [108]: 512 wide 647.9; [109]: 512 windows per update 624.3; [110]: MPPI
-    with 12 iterations while training 636.2)."""
+    with 12 iterations while training 636.2; [112]: exploring with at least 0.2 / 0.5 x the noise 656.9 / 595.1)."""
     import subprocess
     import sys
 
@@ -266,3 +266,5 @@ def test_the_acrobot_levers_figure_regenerates_from_the_committed_runs(tmp_path)
     assert "every 6, gamma 0.985, CfC backbone 512 [108]: 621.6 / 637.9 / 684.3, mean 647.9" in done.stdout
     assert "every 6, gamma 0.985, 512 windows/update [109]: 620.2 / 629.6 / 623.2, mean 624.3" in done.stdout
     assert "every 6, gamma 0.985, MPPI 12 iterations [110]: 616.7 / 631.8 / 660.0, mean 636.2" in done.stdout
+    assert "every 6, gamma 0.985, exploration floor 0.2 [112]: 639.8 / 621.2 / 709.7, mean 656.9" in done.stdout
+    assert "every 6, gamma 0.985, exploration floor 0.5 [112]: 542.5 / 610.1 / 632.6, mean 595.1" in done.stdout
