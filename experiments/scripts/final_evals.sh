@@ -4,10 +4,11 @@
 #   - MJX_EPISODES (default 20) episodes of `cli eval` on MJX (the GPU), the same starts for every run of a master
 #     seed, into runs/batch/mjx-20ep-NAME.csv (mjx-<n>ep-NAME.csv for another n);
 #   - DMC_EPISODES (default 10) episodes of `cli eval --backend dm_control` (the machine's CPU steps dm_control's
-#     physics, its GPU plans: ~1 min for three acrobot policies where the 2-core CPU box takes 13-30 min each),
-#     into runs/batch/dm_control-NAME.csv. Not bit for bit the CPU box's returns: same starts, other arithmetic
-#     (RESULTS.md [112], six policies: +6.9 ± 6.3 on average over 60 episodes, no bias shown; 26 episodes within 1,
-#     one 206.7 apart; policies' means -1.8 to +22.4 apart), so pair device with device, CPU with CPU.
+#     physics, its GPU plans: ~1 min for six acrobot policies side by side, where the 2-core CPU box took 5-30 min
+#     each), into runs/batch/dm_control-NAME.csv. It replays byte for byte on another H100, but not the CPU box's
+#     returns: same starts, other arithmetic (RESULTS.md [112], six policies: +6.9 ± 6.3 on average over 60
+#     episodes, no bias shown; 26 episodes within 1, one 206.7 apart; policies' means -1.8 to +22.4 apart), so pair
+#     device files with device files and CPU files with CPU files where both exist.
 #
 #   final_evals.sh NAME...        each NAME a run folder runs/batch/NAME with its policy.npz (device_batch.sh's runs)
 #
