@@ -7,9 +7,10 @@ run, source, seed, episode, shoulder, elbow, energy, return; one row per episode
 episodes at the start energy below which lie the lowest ``--fraction`` of that source's distinct starts: the
 acrobot hanging near rest, where every policy scores least ([78]). A source is either the trainer's evaluations
 ("training evaluation <step>") or the ``cli eval`` CSVs of one kind (their file names without the run's tag and
-seed: MJX episodes, dm_control, ...): runs of one master seed share their starts there, so the cut is one energy per
-kind. For a training evaluation the policy prior's return on the same episode (``eval.csv``'s ``prior_return``,
-from ``--eval-prior``) is read from the run folder when it has one.
+seed: MJX episodes, dm_control, ...); the cut is one energy per kind, over the distinct starts of all its rows (runs
+of one master seed, or all runs of a ``cli eval`` kind, share theirs). For a training evaluation the policy prior's
+return on the same episode (``eval.csv``'s ``prior_return``, from ``--eval-prior``) is read from the run folder when
+it has one.
 
 One markdown row per line (the runs' folder names without ``-seed<N>``, in order of appearance) and source kind:
 episodes, the mean return below the cut and above it, and the prior's where known. Rows repeated across CSVs (a
