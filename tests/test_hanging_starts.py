@@ -81,6 +81,7 @@ def test_source_kinds_line_names_and_the_cut_of_one_start():
     assert hanging_starts.source_kind("mjx-20ep-gamma985-relaunch-seed2-200256.csv") == "mjx-20ep"
     assert hanging_starts.source_kind("dm_control-gpu-explorefloor05-seed1-200256.csv") == "dm_control-gpu"
     assert hanging_starts.source_kind("a/b/dm_control-iter12-seed3-200256.csv") == "dm_control"
+    assert hanging_starts.source_kind("mjx-cpu-20ep-floor-seed1-200256-pi128.csv") == "mjx-cpu-20ep -pi128"
     assert hanging_starts.line_name("x/acrobot-recipe-explorefloor02-seed3/") == "acrobot-recipe-explorefloor02"
     assert hanging_starts.energy_cut([3.0, 3.0], 0.1) == float("inf")  # one distinct start: it counts as hanging
     assert hanging_starts.energy_cut([5.0, 1.0, 3.0, 1.0], 0.01) == 3.0  # at least the lowest one below

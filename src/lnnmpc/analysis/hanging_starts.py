@@ -41,12 +41,16 @@ def line_name(run: str) -> str:
 
 def source_kind(source: str) -> str:
     """The group a source's cut is taken over: ``training evaluation`` or a CSV's name less its run tag and seed
-    (``mjx-20ep-gamma985-seed1-200256.csv`` -> ``mjx-20ep``; ``dm_control-...`` -> ``dm_control``)."""
+    (``mjx-20ep-gamma985-seed1-200256.csv`` -> ``mjx-20ep``; ``dm_control-...`` -> ``dm_control``), with what
+    follows the step when anything does (``...-200256-pi128.csv`` -> ``mjx-cpu-20ep -pi128``: another setting)."""
     if source.startswith(TRAINING):
         return TRAINING
     name = os.path.basename(source)
     match = re.match(r"(mjx-\d+ep|mjx-cpu-\d+ep|dm_control-gpu|dm_control)-", name)
-    return match.group(1) if match else name
+    if not match:
+        return name
+    setting = re.search(r"-\d+(-[^.]+)\.csv$", name)
+    return match.group(1) + (f" {setting.group(1)}" if setting else "")
 
 
 def read_starts(paths: list[str]) -> list[dict]:
