@@ -29,6 +29,7 @@ import numpy as np
 
 from lnnmpc.train import runfolder
 from lnnmpc.train.config import ConfigError, command_status
+from lnnmpc.train.report import column_rows
 
 COLUMNS = ("run", "source", "seed", "episode", "energy", "return")
 TRAINING = "training evaluation"
@@ -86,29 +87,25 @@ def energy_cut(energies: list[float], fraction: float) -> float:
 def prior_returns(run: str, step: int) -> dict[tuple[str, str], float] | None:
     """``(seed, episode) -> prior_return`` of ``run``'s evaluation at ``step``; None without an eval.csv that has
     the column (a run trained without ``--eval-prior``, or a folder not on this machine)."""
-    path = os.path.join(run, "eval.csv")
-    if not os.path.isfile(path):
+    rows = runfolder.read_csv(os.path.join(run, "eval.csv"))  # [] without the file
+    if not rows or "prior_return" not in rows[0]:
         return None
-    with open(path, newline="") as handle:
-        reader = csv.DictReader(handle)
-        if "prior_return" not in (reader.fieldnames or []):
-            return None
-        return {(r["seed"], r["episode"]): float(r["prior_return"]) for r in reader
-                if int(r["env_step"]) == step and r["prior_return"] != ""}
+    return {(r["seed"], r["episode"]): float(r["return"]) for r in column_rows(rows, "prior_return")
+            if int(r["env_step"]) == step}
 
 
 def split_table(rows: list[dict], fraction: float) -> str:
     """Markdown: per line and source kind, the episodes and mean returns below / above the kind's energy cut."""
     if not 0.0 < fraction < 1.0:
         raise ConfigError(f"--fraction {fraction} must lie strictly between 0 and 1")
+    row_kinds = [source_kind(row["source"]) for row in rows]
     kinds: dict[str, list[float]] = defaultdict(list)
-    for row in rows:
-        kinds[source_kind(row["source"])].append(row["energy"])
+    for row, kind in zip(rows, row_kinds, strict=True):
+        kinds[kind].append(row["energy"])
     cuts = {kind: energy_cut(energies, fraction) for kind, energies in kinds.items()}
     cells: dict[tuple[str, str], dict[str, list[float]]] = {}
-    priors: dict[str, dict | None] = {}
-    for row in rows:
-        kind = source_kind(row["source"])
+    priors: dict[tuple[str, int], dict | None] = {}
+    for row, kind in zip(rows, row_kinds, strict=True):
         side = "low" if row["energy"] < cuts[kind] else "high"
         cell = cells.setdefault((line_name(row["run"]), kind), defaultdict(list))
         cell[side].append(row["return"])
