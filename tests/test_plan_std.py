@@ -77,7 +77,11 @@ def test_recorded_episodes_return_what_play_episodes_returns():
     env = _LinearEnv()
     agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
     state = perturbed_state(agent, jax.random.key(3))
-    returns, std, reward = plan_std.plan_std_episodes(agent, state, env, jax.random.key(4), episodes=2)
+    calls = []
+    returns, std, reward = plan_std.plan_std_episodes(agent, state, env, jax.random.key(4), episodes=2,
+                                                      progress=lambda done, total: calls.append((done, total)))
+    # progress from inside the compiled scan: agent steps done, rising, through the last of the 4
+    assert calls[-1] == (4, 4) and [d for d, _ in calls] == sorted({d for d, _ in calls})
     plain, _ = quick_jit(lambda s, k: play_episodes(agent, s, env, k, 2))(state, jax.random.key(4))
     assert std.shape == reward.shape == (4, 2)
     np.testing.assert_allclose(returns, np.asarray(plain), rtol=1e-5)
@@ -103,7 +107,8 @@ def test_command_plays_cli_evals_episodes_for_each_trained_seed(tmp_path, monkey
     """``main`` over a run of 2 trained seeds (its policy and environment given by the two loaders it calls, here
     the toy environment: no MuJoCo to compile): each seed's episodes are those `cli eval` plays (the returns of
     ``mjx_evaluator``, its program, with the same key), every agent step is a CSV row, the table holds each seed's
-    mean return and share under the floors, and bad options exit with status 2."""
+    mean return and share under the floors, a progress line follows each seed's episodes, and bad options exit with
+    status 2."""
     import types
 
     from lnnmpc.train import evaluate, setup
@@ -118,7 +123,10 @@ def test_command_plays_cli_evals_episodes_for_each_trained_seed(tmp_path, monkey
     monkeypatch.setattr(setup, "config_env", lambda config, options: env)
     out = tmp_path / "std.csv"
     assert plan_std.main(["my-run", "--episodes", "3", "--seed", "7", "--floors", "0.1", "--out", str(out)]) == 0
-    table = capsys.readouterr().out
+    captured = capsys.readouterr()
+    table = captured.out
+    for seed in (0, 1):  # a progress line per trained seed, ended
+        assert f"4/4 agent steps of 3 episodes, my-run seed {seed}" in captured.err
     rows = list(csv.DictReader(open(out)))
     assert len(rows) == 2 * 3 * 4 and {r["run"] for r in rows} == {"my-run"}
     expected = evaluate.mjx_evaluator(agent, env, episodes=3, seeds=2)(seeds, jax.random.key(7))  # (2, 3)

@@ -14,7 +14,9 @@ under each of ``--floors``. That share is how often a floor of ``explore_min_std
 exploration noise. The episodes play without noise, so they visit the evaluation's states, not the exploring ones
 of training.
 
-``--out`` writes one row per agent step: run, seed, episode, t, std, reward.
+``--out`` writes one row per agent step: run, seed, episode, t, std, reward. A live line on stderr counts each
+seed's agent steps as they are played (from inside the compiled program, so this program is not kept in XLA's
+persistent cache: each process compiles it).
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from __future__ import annotations
 import argparse
 import functools
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import jax
@@ -30,6 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from lnnmpc.train.config import ConfigError
+from lnnmpc.train.step_report import report_step, reporting
 
 QUANTILES = (10, 50, 90)
 
@@ -56,24 +59,28 @@ class StdRecording:
 @functools.lru_cache(maxsize=4)
 def _std_program(pair: Any, episodes: int, steps: int | None):
     """The compiled episodes of ``pair`` (a :class:`lnnmpc.train.evaluate.SameProgram`: runs of one configuration
-    share it, as their evaluations do)."""
+    share it, as their evaluations do), reporting each agent step done (:mod:`lnnmpc.train.step_report`)."""
     from lnnmpc.train.loop import play_episodes
 
     def record(state, carry, action, nxt):
         return carry[1], nxt.reward
 
     return jax.jit(lambda s, k: play_episodes(StdRecording(pair.agent), s, pair.env, k, episodes, steps=steps,
-                                              record=record))
+                                              record=record, on_step=report_step))
 
 
 def plan_std_episodes(agent: Any, agent_state: Any, env: Any, key: jax.Array, episodes: int,
-                      steps: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      steps: int | None = None, progress: Callable[[int, int], None] | None = None,
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Deterministic episodes of ``agent`` (one trained seed's ``agent_state``) on ``env``, as
     :func:`lnnmpc.train.loop.play_episodes` plays them; returns the returns (episodes,), the planner's std[0]
-    (T, episodes) and the rewards (T, episodes)."""
+    (T, episodes) and the rewards (T, episodes). ``progress(done, total)`` is called as the (parallel) episodes'
+    agent steps get done, from inside the compiled program (e.g. :class:`lnnmpc.train.report.StepProgress`)."""
     from lnnmpc.train.evaluate import SameProgram
 
-    returns, (std, reward) = _std_program(SameProgram(agent, env), episodes, steps)(agent_state, key)
+    program = _std_program(SameProgram(agent, env), episodes, steps)
+    with reporting(progress, steps or env.episode_length):
+        returns, (std, reward) = jax.block_until_ready(program(agent_state, key))
     return np.asarray(returns), np.asarray(std), np.asarray(reward)
 
 
@@ -128,6 +135,7 @@ def run_analysis(args: argparse.Namespace) -> str:
     from lnnmpc.train import runfolder
     from lnnmpc.train.config import require_int
     from lnnmpc.train.evaluate import check_observation_size, load_policy
+    from lnnmpc.train.report import StepProgress
     from lnnmpc.train.setup import config_env
 
     require_int("episodes", args.episodes, 1)
@@ -143,8 +151,9 @@ def run_analysis(args: argparse.Namespace) -> str:
             raise ConfigError(f"{run!r}: {error}") from None
         keys = jax.random.split(jax.random.key(args.seed), policy.config.seeds)  # cli eval's per-seed keys
         for seed in range(policy.config.seeds):
+            unit = f"agent steps of {args.episodes} episodes, {run} seed {seed}"
             returns, std, reward = plan_std_episodes(policy.loop.agent, policy.seed_state(seed), env, keys[seed],
-                                                     args.episodes)
+                                                     args.episodes, progress=StepProgress(unit))
             rows.append({"run": run, "seed": seed, "episodes": args.episodes, "return": float(returns.mean()),
                          **std_summary(std, floors)})
             steps += [{"run": run, "seed": seed, "episode": e, "t": t, "std": float(std[t, e]),
