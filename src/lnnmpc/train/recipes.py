@@ -124,8 +124,9 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                   "backbone: 256 units ended at 664.5 and 638.0 in two launches, 512 at 647.9, level ([106]-[108]). "
                   "TD-MPC2's 256 windows per update (512: 624.3, [109]) and 6 MPPI iterations (12 while training: "
                   "636.2, [110]): both behind on dm_control. Exploring with at least 0.2 x the pink noise "
-                  "(explore_min_std=0.2): 656.9 with a far better prior, behind on dm_control, to be launched again; "
-                  "0.5: 595.1 ([112])."),
+                  "(explore_min_std=0.2): 656.9 with a far better prior, behind on dm_control ([112]); master seed "
+                  "0 alone 702.3 against 640.6, 668.2 over master seeds 0-3 against 645.1 ([114]); launched again "
+                  "before it is adopted or dropped. 0.5: 595.1 ([112])."),
         runs=(*(f"{_RESULTS}/cfc-acrobot-recipe-gamma-h100-200k/acrobot-recipe-gamma985-seed{seed}"
                 for seed in (1, 2, 3, 0, 4, 5)),
               *(f"{_RESULTS}/cfc-acrobot-recipe-gamma985-relaunch-h100-200k/acrobot-recipe-gamma985-relaunch-seed{seed}"
