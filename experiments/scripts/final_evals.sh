@@ -12,10 +12,11 @@
 #
 #   final_evals.sh NAME...        each NAME a run folder runs/batch/NAME with its policy.npz (device_batch.sh's runs)
 #
-# Each evaluation's output goes to runs/batch/eval-NAME.log / dm_control-NAME.log; all CSVs and logs are packed
-# into one $OUT/final-evals.tar.gz (the device tool returns at most 8 files). Exit 1 when an evaluation failed
-# (each one named, with its log's last line); what the others wrote is still packed. Every process gets
-# MEM_FRACTION (default 0.9 / the number of processes) of the GPU's memory and TIMEOUT seconds (default 300).
+# Each evaluation's output goes to runs/batch/eval-NAME.log / dm_control-NAME.log; all CSVs and logs are packed into
+# one $OUT/final-evals.tar.gz (the device tool returns at most 8 files; back here, file_final_evals.sh files it into a
+# results folder). Exit 1 when an evaluation failed (each one named, with its log's last line); what the others wrote
+# is still packed. Every process gets MEM_FRACTION (default 0.9 / the number of processes) of the GPU's memory and
+# TIMEOUT seconds (default 300).
 # $PYTHON picks the interpreter (default python3); DRY=1 prints the commands and runs nothing.
 set -u
 BATCH=runs/batch
