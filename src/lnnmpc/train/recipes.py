@@ -125,8 +125,8 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                   "TD-MPC2's 256 windows per update (512: 624.3, [109]) and 6 MPPI iterations (12 while training: "
                   "636.2, [110]): both behind on dm_control. Exploring with at least 0.2 x the pink noise "
                   "(explore_min_std=0.2): 656.9 with a far better prior, behind on dm_control ([112]); master seed "
-                  "0 alone 702.3 against 640.6, 668.2 over master seeds 0-3 against 645.1 ([114]); launched again "
-                  "before it is adopted or dropped. 0.5: 595.1 ([112])."),
+                  "0 alone 702.3 against 640.6 ([114]); over the six master seeds 651.7 against 639.5, level on "
+                  "the 20 MJX episodes (541.9 against 537.7), not adopted ([115]). 0.5: 595.1 ([112])."),
         runs=(*(f"{_RESULTS}/cfc-acrobot-recipe-gamma-h100-200k/acrobot-recipe-gamma985-seed{seed}"
                 for seed in (1, 2, 3, 0, 4, 5)),
               *(f"{_RESULTS}/cfc-acrobot-recipe-gamma985-relaunch-h100-200k/acrobot-recipe-gamma985-relaunch-seed{seed}"
