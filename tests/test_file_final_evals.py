@@ -63,15 +63,12 @@ def test_files_both_measures_of_each_run_under_the_readmes_names(tmp_path):
             f"logs/dm_control-gpu-floor-seed{seed}.log": files[f"dm_control-{name}.log"]})
     filed = {str(p.relative_to(analysis)): p.read_text() for p in analysis.rglob("*") if p.is_file()}
     assert filed == expected
-    lines = done.stdout.splitlines()
-    assert sorted(lines) == sorted(
-        f"filed {analysis / name}" + (f" ({n} episodes, mean return {mean})" if name.endswith(".csv") else "")
-        for name, n, mean in [("mjx-20ep-floor-seed1-200256.csv", 2, "505.0"), ("logs/mjx-20ep-floor-seed1.log", 0, 0),
-                              ("dm_control-gpu-floor-seed1-200256.csv", 3, "503.0"),
-                              ("logs/dm_control-gpu-floor-seed1.log", 0, 0),
-                              ("mjx-20ep-floor-seed4-200256.csv", 2, "605.0"), ("logs/mjx-20ep-floor-seed4.log", 0, 0),
-                              ("dm_control-gpu-floor-seed4-200256.csv", 3, "603.0"),
-                              ("logs/dm_control-gpu-floor-seed4.log", 0, 0)])
+    csvs = {"mjx-20ep-floor-seed1-200256.csv": (2, "505.0"), "dm_control-gpu-floor-seed1-200256.csv": (3, "503.0"),
+            "mjx-20ep-floor-seed4-200256.csv": (2, "605.0"), "dm_control-gpu-floor-seed4-200256.csv": (3, "603.0")}
+    logs = [f"logs/{kind}-floor-seed{seed}.log" for seed in (1, 4) for kind in ("mjx-20ep", "dm_control-gpu")]
+    assert sorted(done.stdout.splitlines()) == sorted(
+        [f"filed {analysis / name} ({n} episodes, mean return {mean})" for name, (n, mean) in csvs.items()]
+        + [f"filed {analysis / name}" for name in logs])
     # another prefix (here none): the run's whole name
     other = tmp_path / "other"
     other.mkdir()
@@ -125,7 +122,8 @@ def test_refuses_a_csv_without_one_step_and_files_nothing(tmp_path, text, reason
 
 def test_bad_arguments_exit_2_naming_what_is_wrong(tmp_path):
     usage = "usage: file_final_evals.sh TARBALL FOLDER [PREFIX]\n"
-    assert (_run().returncode, _run().stderr) == (2, usage)
+    bare = _run()
+    assert (bare.returncode, bare.stderr) == (2, usage)
     assert _run("a", "b", "c", "d").stderr == usage
     missing = _run(tmp_path / "gone.tar.gz", tmp_path)
     assert (missing.returncode, missing.stderr) == (

@@ -50,6 +50,7 @@ short() {  # NAME less the prefix
 
 sources=()
 targets=()
+declare -A paired_log  # the logs already filed beside their CSV
 bad=0
 shopt -s nullglob
 for file in "$batch"/mjx-*ep-*.csv "$batch"/dm_control-*.csv; do
@@ -66,10 +67,11 @@ for file in "$batch"/mjx-*ep-*.csv "$batch"/dm_control-*.csv; do
     if [ -f "$log" ]; then
         sources+=("$log")
         targets+=("$folder/analysis/logs/$label-$(short "$name").log")
+        paired_log[$log]=1
     fi
 done
 for log in "$batch"/eval-*.log "$batch"/dm_control-*.log; do  # an evaluation that failed left its log, no CSV
-    case " ${sources[*]} " in *" $log "*) continue ;; esac
+    [ -z "${paired_log[$log]:-}" ] || continue
     base=$(basename "$log" .log)
     case $base in
         eval-*) label=mjx-failed; name=${base#eval-} ;;
