@@ -39,13 +39,17 @@ def test_recording_acts_as_the_agent_and_reports_the_first_planned_std(name):
         for a, b in zip(jax.tree_util.tree_leaves(wrapped[0]), jax.tree_util.tree_leaves(carry), strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
         assert planner.min_std <= float(wrapped[1]) <= planner.max_std
+        elites = np.asarray(wrapped[2])
+        assert elites.shape == (planner.num_elites,) and np.all(np.diff(elites) <= 0)  # top-k values, best first
     if name == "tdmpc2":  # the same search run by hand from the encoded observation and the first step's plan mean
         z = agent._apply(state.params, obs[1], method="encode")
         by_hand = quick_jit(lambda z, prev, k: mppi_plan(planner, agent.planning_model(state.params), z, prev, k,
-                                                         explore=False, first_step=jnp.asarray(False))[2]["std"])
+                                                         explore=False, first_step=jnp.asarray(False))[2])
         first_mean = act(agent.initial_carry(), obs[0], jax.random.key(10), jnp.asarray(True))[1]
-        np.testing.assert_allclose(float(wrapped[1]), np.asarray(by_hand(z, first_mean, jax.random.key(11)))[0].mean(),
-                                   rtol=1e-5)
+        info = by_hand(z, first_mean, jax.random.key(11))
+        np.testing.assert_allclose(float(wrapped[1]), np.asarray(info["std"])[0].mean(), rtol=1e-5)
+        np.testing.assert_allclose(wrapped[2], info["elite_values"], rtol=1e-5)
+        assert float(info["elite_values"][0]) == pytest.approx(float(info["elite_value_max"]))
 
 
 @struct.dataclass
@@ -78,12 +82,13 @@ def test_recorded_episodes_return_what_play_episodes_returns():
     agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
     state = perturbed_state(agent, jax.random.key(3))
     calls = []
-    returns, std, reward = plan_std.plan_std_episodes(agent, state, env, jax.random.key(4), episodes=2,
-                                                      progress=lambda done, total: calls.append((done, total)))
+    returns, std, reward, elites = plan_std.plan_std_episodes(
+        agent, state, env, jax.random.key(4), episodes=2, progress=lambda done, total: calls.append((done, total)))
     # progress from inside the compiled scan: agent steps done, rising, through the last of the 4
     assert calls[-1] == (4, 4) and [d for d, _ in calls] == sorted({d for d, _ in calls})
     plain, _ = quick_jit(lambda s, k: play_episodes(agent, s, env, k, 2))(state, jax.random.key(4))
-    assert std.shape == reward.shape == (4, 2)
+    assert std.shape == reward.shape == (4, 2) and elites.shape == (4, 2, agent.config.planner.num_elites)
+    assert np.all(np.diff(elites, axis=-1) <= 0) and np.ptp(elites) > 0
     np.testing.assert_allclose(returns, np.asarray(plain), rtol=1e-5)
     np.testing.assert_allclose(reward.sum(axis=0), returns, rtol=1e-5)
     assert np.all((std >= agent.config.planner.min_std) & (std <= agent.config.planner.max_std))
@@ -95,12 +100,26 @@ def test_summary_and_option_checks():
     assert summary == pytest.approx({"p10": 0.16, "p50": 0.45, "p90": 0.88, "under_0.2": 0.25, "under_0.5": 0.5})
     with pytest.raises(ValueError, match="no std values"):
         plan_std.std_summary(np.array([]), (0.2,))
-    assert plan_std.parse_floors("0.2,0.5") == (0.2, 0.5)
+    assert plan_std.parse_positive_numbers("0.2,0.5", "--floors") == (0.2, 0.5)
     for bad in ("", "0.2,x", "-1", "0", "nan"):
-        with pytest.raises(ConfigError, match="--floors takes positive numbers separated by commas"):
-            plan_std.parse_floors(bad)
+        with pytest.raises(ConfigError, match="--temperatures takes positive numbers separated by commas"):
+            plan_std.parse_positive_numbers(bad, "--temperatures")
     with pytest.raises(ValueError, match="object does not plan with MPPI"):
         plan_std.StdRecording(object())
+
+
+def test_effective_elites_counts_the_elites_that_share_the_weight():
+    values = np.array([[3.0, 3.0, 3.0, 3.0],  # alike: all four
+                       [5.0, 5.0, -1e4, -1e4],  # two far ahead: two
+                       [9.0, -1e4, -1e4, -1e4]])  # one: one
+    np.testing.assert_allclose(plan_std.effective_elites(values, 0.5), [4.0, 2.0, 1.0])
+    # two elites 2 apart: weights 1 and e^(-2 T), normalised; a softer (smaller) temperature spreads the weight
+    for temperature in (0.5, 1 / 6):
+        w = np.array([1.0, np.exp(-2.0 * temperature)])
+        w /= w.sum()
+        assert plan_std.effective_elites(np.array([1.0, -1.0]), temperature) == pytest.approx(1 / np.sum(w ** 2))
+    assert plan_std.effective_elites(np.array([1.0, -1.0]), 1 / 6) > plan_std.effective_elites(np.array([1.0, -1.0]),
+                                                                                                0.5)
 
 
 def test_command_plays_cli_evals_episodes_for_each_trained_seed(tmp_path, monkeypatch, capsys):
@@ -122,7 +141,8 @@ def test_command_plays_cli_evals_episodes_for_each_trained_seed(tmp_path, monkey
     monkeypatch.setattr(evaluate, "load_policy", lambda run, checkpoint=None: policy)
     monkeypatch.setattr(setup, "config_env", lambda config, options: env)
     out = tmp_path / "std.csv"
-    assert plan_std.main(["my-run", "--episodes", "3", "--seed", "7", "--floors", "0.1", "--out", str(out)]) == 0
+    assert plan_std.main(["my-run", "--episodes", "3", "--seed", "7", "--floors", "0.1", "--temperatures", "0.1",
+                          "--out", str(out)]) == 0
     captured = capsys.readouterr()
     table = captured.out
     for seed in (0, 1):  # a progress line per trained seed, ended
@@ -137,7 +157,13 @@ def test_command_plays_cli_evals_episodes_for_each_trained_seed(tmp_path, monkey
         line = next(x for x in table.splitlines() if x.startswith(f"| my-run | {seed} | 3 | "))
         assert float(line.split(" | ")[3]) == pytest.approx(np.mean(totals), abs=0.051)
         share = np.mean([float(r["std"]) < 0.1 for r in mine])
-        assert line.split(" | ")[-1].rstrip(" |") == f"{share:.2f}"
+        cells = line.rstrip(" |").split(" | ")
+        assert cells[-4] == f"{share:.2f}" and cells[-3] == f"{agent.config.planner.temperature:g}"
+        for cell, column in zip(cells[-2:], ("ess_planner", "ess_0.1"), strict=True):
+            ess = [float(r[column]) for r in mine]
+            assert 1 <= min(ess) and max(ess) <= agent.config.planner.num_elites
+            assert cell == f"{np.median(ess):.1f}"
+        assert np.median([float(r["ess_0.1"]) for r in mine]) >= np.median([float(r["ess_planner"]) for r in mine])
     assert plan_std.main(["my-run", "--floors", "0.2,x"]) == 2
     assert "--floors takes positive numbers separated by commas, got '0.2,x'" in capsys.readouterr().err
     assert plan_std.main(["my-run", "--episodes", "0"]) == 2

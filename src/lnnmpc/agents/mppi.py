@@ -184,7 +184,8 @@ def mppi_plan(
     :mod:`lnnmpc.agents.exploration`).
 
     ``new_mean`` is the final (unshifted) MPPI mean: pass it back as ``prev_mean`` on the next step. ``info`` holds
-    the final ``std`` (horizon, act_dim), ``elite_value_max`` / ``elite_value_mean`` and ``elite_index``.
+    the final ``std`` (horizon, act_dim), ``elite_value_max`` / ``elite_value_mean``, ``elite_values``
+    (num_elites,) (the last iteration's, best first) and ``elite_index``.
     """
     horizon, act_dim = prev_mean.shape
     if horizon != config.horizon:
@@ -234,6 +235,7 @@ def mppi_plan(
         "std": std,
         "elite_value_max": elite_values.max(),
         "elite_value_mean": elite_values.mean(),
+        "elite_values": elite_values,
         "elite_index": idx,
     }
     return action, mean, info
