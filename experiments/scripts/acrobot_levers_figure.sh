@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The acrobot lines trained on master seeds 1-3 since the learning-rate decay ([73]-[112]): each run's last training
+# The acrobot lines trained on master seeds 1-3 since the learning-rate decay ([73]-[117]): each run's last training
 # evaluation (~200K), grouped by line, against issue #5's 700 and TD-MPC2's measured 278.1 ([21]).
 #   bash experiments/scripts/acrobot_levers_figure.sh [PREFIX]
 # (default PREFIX experiments/results/figures/acrobot-levers-master-seeds123-200k; run from the project root with the
@@ -34,6 +34,7 @@ runs() {  # FOLDER NAME: FOLDER/NAME1,FOLDER/NAME2,FOLDER/NAME3 (NAME ends in "s
     --line "every 6, gamma 0.985, MPPI 12 iterations [110]=$(runs iter12-h100-200k acrobot-recipe-iter12-seed)" \
     --line "every 6, gamma 0.985, exploration floor 0.2 [112]=$(runs explorefloor02-h100-200k acrobot-recipe-explorefloor02-seed)" \
     --line "every 6, gamma 0.985, exploration floor 0.5 [112]=$(runs explorefloor05-h100-200k acrobot-recipe-explorefloor05-seed)" \
+    --line "every 6, gamma 0.985, 401 two-hot bins [117]=$(runs bins401-h100-200k acrobot-recipe-bins401-seed)" \
     --bar 700 --reference "TD-MPC2 [21]=278.1" --run-names "master seed 1,master seed 2,master seed 3" \
     --title "acrobot-swingup, cfc-zp-det, master seeds 1-3 at ~200K: the lines since the learning-rate decay" \
     --out "$out"

@@ -126,7 +126,8 @@ RECIPES: dict[str, Recipe] = {recipe.name: recipe for recipe in (
                   "636.2, [110]): both behind on dm_control. Exploring with at least 0.2 x the pink noise "
                   "(explore_min_std=0.2): 656.9 with a far better prior, behind on dm_control ([112]); master seed "
                   "0 alone 702.3 against 640.6 ([114]); over the six master seeds 651.7 against 639.5, level on "
-                  "the 20 MJX episodes (541.9 against 537.7), not adopted ([115]). 0.5: 595.1 ([112])."),
+                  "the 20 MJX episodes (541.9 against 537.7), not adopted ([115]). 0.5: 595.1 ([112]). 401 two-hot "
+                  "bins instead of 101: 626.7, behind on every measure ([117])."),
         runs=(*(f"{_RESULTS}/cfc-acrobot-recipe-gamma-h100-200k/acrobot-recipe-gamma985-seed{seed}"
                 for seed in (1, 2, 3, 0, 4, 5)),
               *(f"{_RESULTS}/cfc-acrobot-recipe-gamma985-relaunch-h100-200k/acrobot-recipe-gamma985-relaunch-seed{seed}"
