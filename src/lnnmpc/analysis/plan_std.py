@@ -1,4 +1,4 @@
-"""``python -m lnnmpc.analysis.plan_std``: how wide MPPI's search ends when a trained agent acts.
+"""``python -m lnnmpc.analysis.plan_std``: how wide MPPI's search ends, and how alike its elites weigh, as agents act.
 
     python -m lnnmpc.analysis.plan_std RUN [RUN ...] [--checkpoint STEP] [--episodes 4] [--seed 0]
         [--floors 0.2,0.5] [--temperatures 0.167] [--out CSV]
