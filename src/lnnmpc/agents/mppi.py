@@ -184,8 +184,9 @@ def mppi_plan(
     :mod:`lnnmpc.agents.exploration`).
 
     ``new_mean`` is the final (unshifted) MPPI mean: pass it back as ``prev_mean`` on the next step. ``info`` holds
-    the final ``std`` (horizon, act_dim), ``elite_value_max`` / ``elite_value_mean``, ``elite_values``
-    (num_elites,) (the last iteration's, best first) and ``elite_index``.
+    the final ``std`` (horizon, act_dim), ``elite_value_max`` / ``elite_value_mean``, the last iteration's
+    ``elite_values`` (num_elites,) (best first) and ``elite_actions`` (horizon, num_elites, act_dim), and
+    ``elite_index``.
     """
     horizon, act_dim = prev_mean.shape
     if horizon != config.horizon:
@@ -236,6 +237,7 @@ def mppi_plan(
         "elite_value_max": elite_values.max(),
         "elite_value_mean": elite_values.mean(),
         "elite_values": elite_values,
+        "elite_actions": elite_actions,
         "elite_index": idx,
     }
     return action, mean, info
