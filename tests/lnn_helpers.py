@@ -1,10 +1,11 @@
-"""Shared pieces of the LNN-TD-MPC2 tests: tiny agents, random training windows and a fast-compiling jit (CPU CI
-time is compile time)."""
+"""Shared pieces of the LNN-TD-MPC2 tests: tiny agents, random training windows, a fast-compiling jit (CPU CI
+time is compile time) and a physics-free linear environment."""
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from flax import struct
 
 from lnnmpc.agents.registry import make_agent
 
@@ -50,3 +51,28 @@ def window(agent, seed: int = 0) -> dict:
             "reward": jax.random.uniform(k[2], (S, B)), "dt": jax.random.randint(k[3], (S, B), 1, 3) * 1.0,
             "h_prev": 0.5 * jnp.tanh(jax.random.normal(k[4], (S, B, N))),
             "prev_action": jnp.concatenate([jnp.zeros((1, B, ACT)), action[:-1]])}
+
+
+@struct.dataclass
+class _LinearState:
+    obs: jax.Array
+    dt: jax.Array
+    t: jax.Array
+    reward: jax.Array
+
+
+class LinearEnv:
+    """A pure-JAX stand-in for an Env (no MuJoCo to compile): x' = 0.9 x + action in every coordinate, reward
+    -|x|^2, 4 agent steps; the interface play_episodes uses (reset, step, episode_length) and the attributes that
+    name an Env's programs (lnnmpc.train.evaluate.SameProgram)."""
+
+    episode_length, spec, action_repeat, physics_options, corruption = 4, "linear", 1, (), ()
+    observation_size, action_size = 5, 2
+
+    def reset(self, key):
+        return _LinearState(obs=jax.random.normal(key, (self.observation_size,)), dt=jnp.ones(()),
+                            t=jnp.zeros((), jnp.int32), reward=jnp.zeros(()))
+
+    def step(self, state, action):
+        obs = 0.9 * state.obs + jnp.pad(action, (0, self.observation_size - self.action_size))
+        return state.replace(obs=obs, t=state.t + 1, reward=-jnp.sum(obs ** 2))

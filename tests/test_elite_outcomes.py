@@ -8,18 +8,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from lnn_helpers import perturbed_state, quick_jit
-from test_plan_std import ACT_DIM, OBS_DIM, _LinearEnv
+from lnn_helpers import LinearEnv, perturbed_state, quick_jit
 
 from lnnmpc.agents.registry import make_agent
 from lnnmpc.analysis import elite_outcomes as eo
 from lnnmpc.train.config import ConfigError
 
+OBS_DIM, ACT_DIM = LinearEnv.observation_size, LinearEnv.action_size
+
 
 def test_elite_rollouts_play_the_elites_actions_then_the_agents_own():
     """Each elite's H planned actions step the environment as a hand-written loop of x' = 0.9 x + a does, the
     encoder reading each step as ``observe`` would, and then the agent acts on as its own ``act`` does."""
-    env = _LinearEnv()
+    env = LinearEnv()
     agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
     state = perturbed_state(agent, jax.random.key(0))
     s0 = env.reset(jax.random.key(1))
@@ -79,7 +80,7 @@ def test_command_follows_each_episodes_first_hanging_step(tmp_path, monkeypatch,
 
     from lnnmpc.train import evaluate, setup
 
-    env = _LinearEnv()
+    env = LinearEnv()
     agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
     seeds = jax.tree_util.tree_map(lambda x: x[None], perturbed_state(agent, jax.random.key(5)))
     policy = evaluate.Policy(config=types.SimpleNamespace(seeds=1, eval_obs={}),

@@ -8,8 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from flax import struct
-from lnn_helpers import perturbed_state, quick_jit
+from lnn_helpers import LinearEnv, perturbed_state, quick_jit
 
 from lnnmpc.agents.mppi import mppi_plan
 from lnnmpc.agents.registry import make_agent
@@ -17,7 +16,7 @@ from lnnmpc.analysis import plan_std
 from lnnmpc.train.config import ConfigError
 from lnnmpc.train.loop import play_episodes
 
-OBS_DIM, ACT_DIM = 5, 2
+OBS_DIM, ACT_DIM = LinearEnv.observation_size, LinearEnv.action_size
 
 
 @pytest.mark.parametrize("name", ["tdmpc2", "cfc-zp-det"])
@@ -52,33 +51,8 @@ def test_recording_acts_as_the_agent_and_reports_the_first_planned_std(name):
         assert float(info["elite_values"][0]) == pytest.approx(float(info["elite_value_max"]))
 
 
-@struct.dataclass
-class _State:
-    obs: jax.Array
-    dt: jax.Array
-    t: jax.Array
-    reward: jax.Array
-
-
-class _LinearEnv:
-    """A pure-JAX stand-in for an Env (no MuJoCo to compile): x' = 0.9 x + action in every coordinate, reward
-    -|x|^2, 4 agent steps; the interface play_episodes uses (reset, step, episode_length) and the attributes that
-    name an Env's programs (lnnmpc.train.evaluate.SameProgram)."""
-
-    episode_length, spec, action_repeat, physics_options, corruption = 4, "linear", 1, (), ()
-    observation_size, action_size = OBS_DIM, ACT_DIM
-
-    def reset(self, key):
-        return _State(obs=jax.random.normal(key, (OBS_DIM,)), dt=jnp.ones(()), t=jnp.zeros((), jnp.int32),
-                      reward=jnp.zeros(()))
-
-    def step(self, state, action):
-        obs = 0.9 * state.obs + jnp.pad(action, (0, OBS_DIM - ACT_DIM))
-        return state.replace(obs=obs, t=state.t + 1, reward=-jnp.sum(obs ** 2))
-
-
 def test_recorded_episodes_return_what_play_episodes_returns():
-    env = _LinearEnv()
+    env = LinearEnv()
     agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
     state = perturbed_state(agent, jax.random.key(3))
     calls = []
@@ -132,7 +106,7 @@ def test_command_plays_cli_evals_episodes_for_each_trained_seed(tmp_path, monkey
 
     from lnnmpc.train import evaluate, setup
 
-    env = _LinearEnv()
+    env = LinearEnv()
     agent = make_agent("cfc-zp-det", OBS_DIM, ACT_DIM, small=True)
     states = [perturbed_state(agent, jax.random.key(k)) for k in (5, 6)]
     seeds = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *states)  # the trained seeds' axis
